@@ -1,0 +1,157 @@
+"""The `guard` command: run, replay, sim, demo, mcap-recover.
+
+Errors a user can fix (a missing file, a bad config key, an unknown scenario, a link that cannot be
+opened) are one line on stderr and a non-zero exit status.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+from . import __version__
+from .errors import GuardError
+
+
+def _replay(args) -> int:
+    from .config import load
+    from .replay import Trace, replay, truth_beside, write_report
+    cfg = load(args.config)
+    if args.detector:
+        from dataclasses import replace
+        cfg = replace(cfg, monitor=replace(cfg.monitor, detector=replace(cfg.monitor.detector, name=args.detector)))
+    listeners = []
+    trace = Trace() if args.plot else None
+    if trace:
+        listeners.append(trace)
+    log = None
+    if args.mcap:
+        from .mcaplog import McapLog
+        log = McapLog(args.mcap, metadata={"config": cfg.source_text, "source": args.file})
+        listeners.append(log)
+    try:
+        report = replay(args.file, cfg, listeners=listeners, progress=args.report != "-")
+    finally:
+        if log:
+            log.close()
+    if args.report:
+        write_report(report, args.report)
+    if args.plot:
+        from .plot import plot
+        plot(trace, report, args.plot, truth_beside(args.file))
+    if args.report != "-":
+        alarms = report["alarms"]
+        first = (f"first alarm at GNSS sample {alarms[0]['gnss_index']} ({alarms[0]['sensor']} "
+                 f"{alarms[0]['channel']})") if alarms else "no alarm"
+        skipped = sum(report["skipped"].values())
+        print(f"{args.file}: {report['duration_s']:.1f} s, {report['gnss_samples']} GNSS samples, "
+              f"{len(alarms)} alarm(s), {first}; skipped {skipped}")
+    return 0
+
+
+def _run(args) -> int:
+    from .config import load
+    from .daemon import Daemon
+    return Daemon(load(args.config), connect=args.connect, mcap=args.mcap).run()
+
+
+def _sim(args) -> int:
+    from sim import scenario
+    from sim.run import run
+    try:
+        sc = scenario.load(args.scenario)
+    except scenario.ScenarioError as e:
+        raise GuardError(str(e)) from None
+    if not args.tlog and not args.out and not args.can:
+        raise GuardError("guard sim: give --tlog FILE, --out URL or --can URL")
+    can = None
+    if args.can:
+        from sim.canbus import CanPublisher
+        try:
+            can = CanPublisher(args.can)
+        except Exception as e:
+            raise GuardError(f"cannot open CAN bus {args.can}: {e}") from None
+
+    def show(msg) -> None:
+        names = {2: "CRITICAL", 4: "WARNING", 5: "NOTICE", 6: "INFO"}
+        print(f"[ground station] {names.get(msg.severity, msg.severity)}: {msg.text}", flush=True)
+
+    try:
+        truth = run(sc, args.seed, tlog=args.tlog, out=args.out, speedup=args.speedup, fast=args.fast,
+                    on_statustext=show, can=can)
+    finally:
+        if can:
+            can.close()
+    where = args.tlog or args.out or args.can
+    print(f"sim: scenario {sc.name}, seed {args.seed}, {sc.duration_s:.0f} s -> {where}", file=sys.stderr)
+    return 0 if truth else 1
+
+
+def _demo(args) -> int:
+    from .demo import demo
+    return demo(args.scenario, args.seed, args.speedup)
+
+
+def _recover(args) -> int:
+    from .mcaplog import recover
+    messages, channels = recover(args.src, args.dst)
+    print(f"{args.dst}: recovered {messages} messages on {channels} channels")
+    return 0
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="guard", description="Detect attacks on a vehicle's navigation sensors.")
+    p.add_argument("--version", action="version", version=f"guard {__version__}")
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    r = sub.add_parser("run", help="the daemon: read a live link, alarm on it, log to MCAP")
+    r.add_argument("--connect", help="pymavlink URL or can:INTERFACE:CHANNEL (overrides link.connect)")
+    r.add_argument("--config", help="TOML config file (see configs/guard.toml)")
+    r.add_argument("--mcap", help="MCAP log file or directory (overrides log.mcap)")
+    r.set_defaults(func=_run)
+
+    r = sub.add_parser("replay", help="run a tlog through the detector offline")
+    r.add_argument("file", help="a .tlog file")
+    r.add_argument("--config", help="TOML config file")
+    r.add_argument("--detector", choices=["cusum", "paper"], help="override detector.name")
+    r.add_argument("--report", help="write the JSON report here ('-' for stdout)")
+    r.add_argument("--plot", help="write the three-panel figure here (.png)")
+    r.add_argument("--mcap", help="write an MCAP log here")
+    r.set_defaults(func=_replay)
+
+    r = sub.add_parser("sim", help="the simulator: a vehicle speaking MAVLink (and DroneCAN)")
+    r.add_argument("--scenario", default="paper", help="scenario name (configs/scenarios/) or TOML file")
+    r.add_argument("--seed", type=int, default=1)
+    r.add_argument("--tlog", help="write a tlog (and NAME.truth.json beside it)")
+    r.add_argument("--out", help="send live MAVLink to this pymavlink URL, e.g. udpout:127.0.0.1:14550")
+    r.add_argument("--can", help="publish DroneCAN on this bus, e.g. can:virtual:bus0")
+    r.add_argument("--speedup", type=float, default=1.0, help="live output at X times real time")
+    r.add_argument("--fast", action="store_true", help="live output as fast as possible (no pacing)")
+    r.set_defaults(func=_sim)
+
+    r = sub.add_parser("demo", help="simulator and daemon on UDP loopback: watch the attack being caught")
+    r.add_argument("--scenario", default="paper")
+    r.add_argument("--seed", type=int, default=1)
+    r.add_argument("--speedup", type=float, default=4.0)
+    r.set_defaults(func=_demo)
+
+    r = sub.add_parser("mcap-recover", help="make a truncated MCAP log whole (after a crash)")
+    r.add_argument("src")
+    r.add_argument("dst")
+    r.set_defaults(func=_recover)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                        format="%(name)s: %(levelname)s: %(message)s", stream=sys.stderr)
+    try:
+        return args.func(args)
+    except GuardError as e:
+        print(f"guard: error: {e}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130

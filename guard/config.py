@@ -1,0 +1,152 @@
+"""Configuration: one TOML file, validated once into frozen objects and passed down.
+
+An unknown section or key, a wrong type or an impossible value is a ConfigError naming the file and
+the key. Every key has a default; configs/guard.toml lists them all with their units.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, field, fields, replace
+
+from .core import MonitorConfig
+from .detectors import DETECTORS, DetectorConfig
+from .ekf import FilterConfig
+from .errors import ConfigError
+
+
+@dataclass(frozen=True)
+class LinkConfig:
+    connect: str = "udpin:0.0.0.0:14550"    # pymavlink URL, or can:INTERFACE:CHANNEL
+    system_id: int = 1                      # the autopilot's MAVLink system id (0: any)
+    heartbeat_hz: float = 1.0
+    statistic_hz: float = 2.0               # NAMED_VALUE_FLOAT of the test statistic
+    link_timeout_s: float = 5.0             # warn when no GNSS or IMU message came for this long
+    signing_key_file: str = ""              # MAVLink 2 signing: a file holding 32 bytes (or 64 hex digits)
+    require_signed: bool = False            # with a key: reject unsigned incoming frames
+
+
+@dataclass(frozen=True)
+class CanConfig:
+    gnss_node_id: int = 0                   # DroneCAN node ids; 0: the first node heard
+    imu_node_id: int = 0
+    time_source: str = "message"            # "message" (DroneCAN timestamp) or "receive"
+
+
+@dataclass(frozen=True)
+class LogConfig:
+    mcap: str = ""                          # a .mcap file or a directory; "" writes no log
+    rotate_mb: float = 256.0                # start a new file past this size (0: never)
+    rotate_s: float = 3600.0                # or past this much vehicle time (0: never)
+    chunk_kb: float = 256.0                 # a crash loses at most one chunk
+
+
+@dataclass(frozen=True)
+class Config:
+    link: LinkConfig = field(default_factory=LinkConfig)
+    can: CanConfig = field(default_factory=CanConfig)
+    log: LogConfig = field(default_factory=LogConfig)
+    monitor: MonitorConfig = field(default_factory=MonitorConfig)
+    source_text: str = ""                   # the TOML as read, stored in the MCAP log
+
+
+def _typed(cls, table: dict, where: str):
+    """Build dataclass `cls` from `table`, checking each key against its default's type."""
+    if not isinstance(table, dict):
+        raise ConfigError(f"{where}: expected a table")
+    defaults = cls()
+    known = {f.name for f in fields(cls)}
+    values = {}
+    for key, value in table.items():
+        name = f"{where}.{key}"
+        if key not in known:
+            raise ConfigError(f"{name}: unknown key (known: {', '.join(sorted(known))})")
+        default = getattr(defaults, key)
+        if key == "declination_deg":
+            if value == "auto":
+                value = None
+            elif isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ConfigError(f"{name}: expected \"auto\" or a number of degrees, got {value!r}")
+            values[key] = None if value is None else float(value)
+            continue
+        if isinstance(default, bool):
+            if not isinstance(value, bool):
+                raise ConfigError(f"{name}: expected true or false, got {value!r}")
+        elif isinstance(default, (int, float)):
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ConfigError(f"{name}: expected a number, got {value!r}")
+            if isinstance(default, int) and not isinstance(default, bool) and not float(value).is_integer():
+                raise ConfigError(f"{name}: expected a whole number, got {value!r}")
+            if not math.isfinite(value) or value < 0:
+                raise ConfigError(f"{name}: must be a finite number >= 0, got {value!r}")
+            value = type(default)(value)
+        elif isinstance(default, str) and not isinstance(value, str):
+            raise ConfigError(f"{name}: expected a string, got {value!r}")
+        values[key] = value
+    return replace(defaults, **values)
+
+
+def _check(cfg: Config, where: str) -> None:
+    """Values that type-check but cannot work."""
+    det, flt, link = cfg.monitor.detector, cfg.monitor.filter, cfg.link
+    problems = {
+        "detector.name": (det.name not in DETECTORS, f"must be one of {', '.join(DETECTORS)}"),
+        "detector.false_alarm_interval_h": (det.false_alarm_interval_h <= 0, "must be > 0"),
+        "detector.shift_sigma": (det.shift_sigma <= 0, "must be > 0"),
+        "detector.paper_warmup": (det.paper_warmup < 2, "must be >= 2"),
+        "link.system_id": (link.system_id > 255, "must be 0..255"),
+        "link.heartbeat_hz": (link.heartbeat_hz <= 0, "must be > 0"),
+        "can.gnss_node_id": (cfg.can.gnss_node_id > 127, "must be 0..127"),
+        "can.imu_node_id": (cfg.can.imu_node_id > 127, "must be 0..127"),
+        "can.time_source": (cfg.can.time_source not in ("message", "receive"), "must be \"message\" or \"receive\""),
+        "monitor.readmit_s": (cfg.monitor.readmit_s <= 0, "must be > 0"),
+    }
+    for f in fields(FilterConfig):
+        value = getattr(flt, f.name)
+        if f.name.endswith(("_sigma_m", "_sigma_mps", "_sigma_rad", "_sigma_radps", "_sigma_mps2")) and value <= 0:
+            problems[f"filter.{f.name}"] = (True, "must be > 0")
+    for key, (bad, why) in problems.items():
+        if bad:
+            raise ConfigError(f"{where}: {key}: {why}")
+
+
+def parse(data: dict, where: str = "config", text: str = "") -> Config:
+    sections = {
+        "link": LinkConfig, "can": CanConfig, "log": LogConfig,
+        "filter": FilterConfig, "detector": DetectorConfig, "monitor": MonitorConfig,
+    }
+    built = {}
+    for key, table in data.items():
+        if key not in sections:
+            raise ConfigError(f"{where}: {key}: unknown section (known: {', '.join(sections)})")
+        if key == "monitor":
+            table = {k: v for k, v in table.items()} if isinstance(table, dict) else table
+            for nested in ("filter", "detector"):
+                if isinstance(table, dict) and nested in table:
+                    raise ConfigError(f"{where}: monitor.{nested}: write it as its own [{nested}] section")
+        built[key] = _typed(sections[key], table, f"{where}: {key}")
+    monitor = built.pop("monitor", MonitorConfig())
+    monitor = replace(monitor, filter=built.pop("filter", FilterConfig()),
+                      detector=built.pop("detector", DetectorConfig()))
+    cfg = Config(monitor=monitor, source_text=text, **built)
+    _check(cfg, where)
+    return cfg
+
+
+def load(path: str | None) -> Config:
+    """Read and validate a config file (None: all defaults)."""
+    if path is None:
+        return Config()
+    try:
+        with open(path, "rb") as f:
+            text = f.read().decode()
+    except OSError as e:
+        raise ConfigError(f"{path}: cannot read: {e.strerror}") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path}: not UTF-8 text") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{path}: {e}") from None
+    return parse(data, path, text)

@@ -1,0 +1,226 @@
+"""The core: one object with one pure, synchronous step. Sample in, events out, no I/O.
+
+Live MAVLink, tlog replay, the CAN path and the tests all run this same object.
+
+Per IMU sample: level the IMU with the autopilot's roll and pitch (a flying drone is tilted),
+predict the filter to the sample's time, form the innovations of heading, gyro and accelerometer,
+test them, fuse them. Per GNSS sample: the same with position and velocity, then an Estimate.
+
+A sensor whose test rejects H0 raises an Alarm and is then excluded: its innovations are still
+formed and tested, but no longer fused, so the estimate rides on the other sensors instead of
+following the attack. It is re-admitted (Cleared) when its normalised innovations have stayed
+within `readmit_sigma` for `readmit_s` seconds.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .detectors import DetectorConfig, make_detector
+from .ekf import H_IMU, H_IMU_NO_MAG, H_POS, N_STATES, TH, VX, VY, FilterConfig, NavEKF, gnss_velocity_model
+from .events import CHANNELS, Alarm, Cleared, Estimate, Event, Innovation, Notice, Tested
+from .geo import LocalFrame, declination_rad
+from .samples import Attitude, GnssFix, ImuSample
+
+
+@dataclass(frozen=True)
+class MonitorConfig:
+    filter: FilterConfig = field(default_factory=FilterConfig)
+    detector: DetectorConfig = field(default_factory=DetectorConfig)
+    exclude_on_alarm: bool = True
+    readmit_sigma: float = 3.0
+    readmit_s: float = 3.0
+    declination_deg: float | None = None    # None: from the World Magnetic Model at the first fix
+    max_gap_s: float = 10.0                 # a longer silence, or time running backwards, re-initialises
+
+
+class Monitor:
+    """Runs the EKF and the detector over a stream of samples."""
+
+    def __init__(self, cfg: MonitorConfig | None = None):
+        self.cfg = cfg or MonitorConfig()
+        n_channels = sum(len(c) for s, c in CHANNELS.items() if s != "gnss_vel" or self.cfg.filter.use_gnss_velocity)
+        self.detector = make_detector(self.cfg.detector, n_channels)
+        self.skipped: Counter[str] = Counter()
+        self.gnss_index = -1
+        self.roll = self.pitch = 0.0
+        self._last_heading: float | None = None
+        self._reset()
+
+    def _reset(self) -> None:
+        self.ekf: NavEKF | None = None
+        self.frame: LocalFrame | None = None
+        self.declination = 0.0
+        self.t_us: int | None = None
+        self.gnss_lost = False
+        self.excluded: dict[str, int] = {}         # sensor -> time of the last inconsistent innovation
+        self.detector.reset()
+
+    # -- the step -----------------------------------------------------------------------------
+    def step(self, sample) -> list[Event]:
+        if isinstance(sample, Attitude):
+            self.roll, self.pitch = sample.roll_rad, sample.pitch_rad
+            return []
+        events: list[Event] = []
+        if isinstance(sample, GnssFix):
+            self.gnss_index += 1
+        timed = not (isinstance(sample, GnssFix) and not sample.fix_ok)    # a no-fix message's time means nothing
+        if timed and self.t_us is not None and (sample.t_us < self.t_us - 200_000
+                                      or sample.t_us > self.t_us + self.cfg.max_gap_s * 1e6):
+            jump = (sample.t_us - self.t_us) / 1e6
+            events.append(Notice(sample.t_us, "warning", f"time jumped {jump:+.1f} s: filter re-initialised"))
+            self._reset()
+        if isinstance(sample, GnssFix):
+            events += self._gnss(sample)
+        elif isinstance(sample, ImuSample):
+            events += self._imu(sample)
+        return events
+
+    def _advance(self, t_us: int) -> None:
+        if t_us > self.t_us:
+            self.ekf.predict((t_us - self.t_us) / 1e6)
+            self.t_us = t_us
+
+    # -- GNSS -----------------------------------------------------------------------------------
+    def _gnss(self, fix: GnssFix) -> list[Event]:
+        events: list[Event] = []
+        if not fix.fix_ok:
+            self.skipped["gnss_no_fix"] += 1
+            if self.ekf is not None and not self.gnss_lost:
+                self.gnss_lost = True
+                events.append(Notice(fix.t_us, "warning", "GNSS fix lost: coasting on the IMU"))
+            return events
+        if self.gnss_lost:
+            self.gnss_lost = False
+            events.append(Notice(fix.t_us, "info", "GNSS fix back"))
+        if self.ekf is None:
+            return events + self._initialise(fix)
+        self._advance(fix.t_us)
+        ekf, cfg = self.ekf, self.cfg.filter
+        e, n = self.frame.to_en(fix.lat_deg, fix.lon_deg)
+        R = np.eye(2) * cfg.gnss_pos_sigma_m ** 2
+        events += self._measure("gnss_pos", fix.t_us, np.array([e, n]), ekf.x[:2].copy(), H_POS, R)
+        if cfg.use_gnss_velocity:
+            hx, H = gnss_velocity_model(ekf.x)
+            R = np.eye(2) * cfg.gnss_vel_sigma_mps ** 2
+            events += self._measure("gnss_vel", fix.t_us, np.array([fix.vel_e_mps, fix.vel_n_mps]), hx, H, R)
+        x, f = ekf.x, self.frame
+        events.append(Estimate(fix.t_us, self.gnss_index, float(x[0]), float(x[1]), float(x[TH]), x.copy(),
+                               np.diagonal(ekf.P).copy(), (f.lat0, f.lon0, f.alt0)))
+        return events
+
+    def _initialise(self, fix: GnssFix) -> list[Event]:
+        self.frame = LocalFrame(fix.lat_deg, fix.lon_deg, fix.alt_m)
+        dec = self.cfg.declination_deg
+        self.declination = declination_rad(fix.lat_deg, fix.lon_deg, fix.alt_m) if dec is None else math.radians(dec)
+        x0 = np.zeros(N_STATES)
+        speed = math.hypot(fix.vel_e_mps, fix.vel_n_mps)
+        heading = self._last_heading
+        if heading is None:
+            heading = math.atan2(fix.vel_n_mps, fix.vel_e_mps) if speed > 1.0 else 0.0
+        x0[TH] = heading
+        # body velocity from the ground velocity: v_body = R(theta)^T v_en
+        x0[VX] = math.cos(heading) * fix.vel_e_mps + math.sin(heading) * fix.vel_n_mps
+        x0[VY] = -math.sin(heading) * fix.vel_e_mps + math.cos(heading) * fix.vel_n_mps
+        self.ekf = NavEKF(self.cfg.filter, x0)
+        self.t_us = fix.t_us
+        return [Notice(fix.t_us, "info", f"filter initialised at {fix.lat_deg:.6f}, {fix.lon_deg:.6f}")]
+
+    # -- IMU ------------------------------------------------------------------------------------
+    def _imu(self, s: ImuSample) -> list[Event]:
+        ax, ay, rate, heading = self._level(s)
+        if heading is not None:
+            self._last_heading = heading
+        if self.ekf is None:
+            self.skipped["imu_before_first_fix"] += 1
+            return []
+        self._advance(s.t_us)
+        cfg = self.cfg.filter
+        if heading is None:
+            self.skipped["imu_no_magnetometer"] += 1
+            z, H = np.array([rate, ax, ay]), H_IMU_NO_MAG
+            sig = (cfg.gyro_sigma_radps, cfg.accel_sigma_mps2, cfg.accel_sigma_mps2)
+        else:
+            z, H = np.array([heading, rate, ax, ay]), H_IMU
+            sig = (cfg.heading_sigma_rad, cfg.gyro_sigma_radps, cfg.accel_sigma_mps2, cfg.accel_sigma_mps2)
+        R = np.diag(np.square(sig))
+        r, S = self.ekf.innovation(z, H @ self.ekf.x, H, R, angle_rows=(0,) if heading is not None else ())
+        # one stacked update, tested sensor by sensor
+        blocks = (("mag", 0, 1), ("gyro", 1, 2), ("accel", 2, 4)) if heading is not None else \
+                 (("gyro", 0, 1), ("accel", 1, 3))
+        events: list[Event] = []
+        keep = []
+        for sensor, i, j in blocks:
+            ev, fused = self._test(sensor, s.t_us, r[i:j], S[i:j, i:j])
+            events += ev
+            if fused:
+                keep.extend(range(i, j))
+        if keep:
+            if len(keep) < len(r):
+                r, S, H, R = r[keep], S[np.ix_(keep, keep)], H[keep], R[np.ix_(keep, keep)]
+            self.ekf.fuse(r, S, H, R)
+        return events
+
+    def _level(self, s: ImuSample):
+        """Horizontal specific force (forward, left), ENU yaw rate and true heading from one sample.
+
+        The body axes are FRD; a tilted IMU is rotated to the local level frame with the latest
+        roll phi and pitch p: v_level = R_y(p) R_x(phi) v_body.
+        """
+        phi, p = self.roll, self.pitch
+        if phi == 0.0 and p == 0.0:
+            fx, fy = s.acc_x_mps2, s.acc_y_mps2
+            yaw_rate_ned = s.gyro_z_radps
+            mx, my = s.mag_x_gauss, s.mag_y_gauss
+        else:
+            cr, sr, cp, sp = math.cos(phi), math.sin(phi), math.cos(p), math.sin(p)
+            fx = cp * s.acc_x_mps2 + sp * sr * s.acc_y_mps2 + sp * cr * s.acc_z_mps2
+            fy = cr * s.acc_y_mps2 - sr * s.acc_z_mps2
+            yaw_rate_ned = (sr * s.gyro_y_radps + cr * s.gyro_z_radps) / cp
+            if s.mag_x_gauss is not None:
+                mx = cp * s.mag_x_gauss + sp * sr * s.mag_y_gauss + sp * cr * s.mag_z_gauss
+                my = cr * s.mag_y_gauss - sr * s.mag_z_gauss
+            else:
+                mx = my = None
+        heading = None
+        if mx is not None and math.hypot(mx, my) > 1e-3:
+            # compass heading chi = atan2(-m_y, m_x) + declination; ENU yaw theta = pi/2 - chi
+            heading = math.remainder(math.pi / 2 - (math.atan2(-my, mx) + self.declination), math.tau)
+        return fx, -fy, -yaw_rate_ned, heading
+
+    # -- testing and fusing -----------------------------------------------------------------------
+    def _measure(self, sensor, t_us, z, hx, H, R) -> list[Event]:
+        r, S = self.ekf.innovation(z, hx, H, R)
+        events, fused = self._test(sensor, t_us, r, S)
+        if fused:
+            self.ekf.fuse(r, S, H, R)
+        return events
+
+    def _test(self, sensor: str, t_us: int, r: np.ndarray, S: np.ndarray) -> tuple[list[Event], bool]:
+        """Run the detector on one sensor's innovation; decide whether to fuse it."""
+        stat, thr, hits = self.detector.test(sensor, t_us, r, S)
+        names = CHANNELS[sensor]
+        events: list[Event] = []
+        if sensor not in self.excluded:
+            fused = True
+            for i, offset in hits:
+                events.append(Alarm(t_us, self.gnss_index, sensor, names[i], stat[i], thr[i], offset,
+                                    self.detector.name))
+            if hits and self.cfg.exclude_on_alarm:
+                self.excluded[sensor] = t_us
+                fused = False
+        else:
+            fused = False
+            z = np.abs(r) / np.sqrt(np.diagonal(S))
+            if hits or np.any(z > self.cfg.readmit_sigma):
+                self.excluded[sensor] = t_us        # still inconsistent
+            elif t_us - self.excluded[sensor] >= self.cfg.readmit_s * 1e6:
+                del self.excluded[sensor]
+                events += [Cleared(t_us, self.gnss_index, sensor, c) for c in names]
+                fused = True
+        events.insert(0, Tested(Innovation(t_us, sensor, names, r, S, fused), self.gnss_index, stat, thr))
+        return events, fused

@@ -1,0 +1,164 @@
+"""The daemon: `guard run`. Reads a live link, runs the core, alarms on the link, logs to MCAP.
+
+Reads top to bottom: run() -> startup() -> main_loop() -> shutdown(). The signal handlers only set
+a flag (a second SIGINT or SIGTERM forces the exit); shutdown finishes the MCAP file and restores
+the original handlers.
+
+On the MAVLink link it sends, as an onboard computer (component 191):
+- HEARTBEAT at `link.heartbeat_hz`;
+- STATUSTEXT CRITICAL when an alarm is raised (sensor, axis, estimated offset, GNSS sample), and
+  NOTICE when it clears; an alarm stays latched while the sensor is excluded, so it is sent once;
+- NAMED_VALUE_FLOAT "grd_ratio": the largest statistic/threshold ratio since the last send
+  (1.0 = at the threshold), at `link.statistic_hz`.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import time
+from collections import Counter
+
+from .config import Config
+from .core import Monitor
+from .errors import SourceError
+from .events import Alarm, Cleared, Notice, Tested
+from .link import MavlinkLink
+from .mcaplog import McapLog
+from .sdnotify import Notifier
+
+log = logging.getLogger(__name__)
+
+UNITS = {"gnss_pos": "m", "gnss_vel": "m/s", "mag": "rad", "gyro": "rad/s", "accel": "m/s2"}
+POLL_S = 0.2            # the loop wakes at least this often (watchdog, heartbeat, link timeout)
+
+
+def alarm_text(e: Alarm) -> str:
+    """At most 50 characters, readable on a ground station: sensor, axis, offset, GNSS sample."""
+    return f"GUARD ALARM {e.sensor} {e.channel} {e.offset:+.1f}{UNITS[e.sensor]} k={e.gnss_index}"[:50]
+
+
+class Daemon:
+    def __init__(self, cfg: Config, *, connect: str | None = None, mcap: str | None = None, out=print):
+        self.cfg = cfg
+        self.connect = connect or cfg.link.connect
+        self.mcap_path = cfg.log.mcap if mcap is None else mcap
+        self.out = out                      # where operator lines go (the terminal)
+        self.monitor = Monitor(cfg.monitor)
+        self.notifier = Notifier()
+        self.should_exit = False
+        self.force_exit = False
+        self.skipped: Counter[str] = Counter()
+        self.alarms = 0
+        self.source = None
+        self.link: MavlinkLink | None = None
+        self.log: McapLog | None = None
+        self._handlers = {}
+
+    # -- life cycle ---------------------------------------------------------------------------------
+    def run(self) -> int:
+        self.install_signal_handlers()
+        try:
+            self.startup()
+            self.main_loop()
+        finally:
+            self.shutdown()
+            self.restore_signal_handlers()
+        return 0
+
+    def startup(self) -> None:
+        link_cfg = self.cfg.link
+        if self.connect.startswith("can:"):
+            from .can import CanSource      # python-can and dronecan only when CAN is configured
+            c = self.cfg.can
+            self.source = CanSource(self.connect, gnss_node_id=c.gnss_node_id or None,
+                                    imu_node_id=c.imu_node_id or None, timeout_s=link_cfg.link_timeout_s,
+                                    time_source=c.time_source)
+            if link_cfg.connect and not link_cfg.connect.startswith("can:"):
+                self.link = MavlinkLink(link_cfg.connect, link_cfg)     # alarms still go out on MAVLink
+        else:
+            self.link = self.source = MavlinkLink(self.connect, link_cfg)
+        if self.mcap_path:
+            c = self.cfg.log
+            self.log = McapLog(self.mcap_path, rotate_mb=c.rotate_mb or None, rotate_s=c.rotate_s or None,
+                               chunk_size=int(c.chunk_kb * 1024),
+                               metadata={"config": self.cfg.source_text, "connect": self.connect})
+        self.out(f"guard: listening on {self.connect}" + (f", logging to {self.mcap_path}" if self.log else ""))
+        self.notifier.ready(f"listening on {self.connect}")
+
+    def main_loop(self) -> None:
+        last_data = time.monotonic()
+        silent = False
+        while not self.should_exit:
+            self.notifier.watchdog()
+            if self.link is not None:
+                self.link.tick()
+            sample = self.source.poll(POLL_S)
+            if sample is None:
+                if not silent and time.monotonic() - last_data > self.cfg.link.link_timeout_s:
+                    silent = True
+                    self._operator(f"no GNSS or IMU data for {self.cfg.link.link_timeout_s:.0f} s: waiting")
+                continue
+            last_data = time.monotonic()
+            if silent:
+                silent = False
+                self._operator("data is back")
+            self.handle(sample)
+
+    def handle(self, sample) -> list:
+        """One sample through the core and out to the sinks."""
+        events = self.monitor.step(sample)
+        if self.log is not None:
+            self.log.on_sample(sample)
+            self.log.on_events(events)
+        for e in events:
+            if isinstance(e, Tested):
+                if self.link is not None:
+                    self.link.note_ratio(max(g / h for g, h in zip(e.statistic, e.threshold)))
+            elif isinstance(e, Alarm):
+                self.alarms += 1
+                text = alarm_text(e)
+                self.out(f"guard: {text} (t={e.t_us / 1e6:.2f} s, statistic {e.statistic:.1f} > {e.threshold:.1f})")
+                if self.link is not None:
+                    self.link.statustext(text, critical=True)
+            elif isinstance(e, Cleared):
+                text = f"GUARD clear {e.sensor} {e.channel} k={e.gnss_index}"
+                self.out(f"guard: {text}")
+                if self.link is not None:
+                    self.link.statustext(text, critical=False)
+            elif isinstance(e, Notice):
+                self._operator(e.text, level=e.level, send=e.level == "warning")
+        return events
+
+    def _operator(self, text: str, level: str = "warning", send: bool = True) -> None:
+        (log.warning if level == "warning" else log.info)("%s", text)
+        if send and self.link is not None:
+            self.link.statustext(f"GUARD {text}", critical=False)
+
+    def shutdown(self) -> None:
+        self.notifier.stopping()
+        if self.log is not None:
+            self.log.close()
+            if self.log.errors:
+                log.error("MCAP log: %d write errors, %d messages lost", self.log.errors, self.log.lost_messages)
+        for part in {id(p): p for p in (self.source, self.link) if p is not None}.values():
+            try:
+                part.close()
+            except (OSError, SourceError) as e:
+                log.warning("closing %s: %s", type(part).__name__, e)
+
+    # -- signals --------------------------------------------------------------------------------------
+    def install_signal_handlers(self) -> None:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            self._handlers[sig] = signal.signal(sig, self.handle_exit)
+
+    def restore_signal_handlers(self) -> None:
+        for sig, handler in self._handlers.items():
+            signal.signal(sig, handler)
+        self._handlers.clear()
+
+    def handle_exit(self, sig, frame) -> None:
+        if self.should_exit:
+            self.force_exit = True
+            raise KeyboardInterrupt     # a second signal: stop now, shutdown() still runs
+        self.should_exit = True

@@ -1,0 +1,35 @@
+"""Geodesy at the edge of the estimator: WGS-84 <-> local east/north (pymap3d), and the magnetic
+declination of the World Magnetic Model (pygeomag), so a magnetometer gives a true heading."""
+
+from __future__ import annotations
+
+import datetime
+import math
+
+import pymap3d
+from pygeomag import GeoMag
+
+
+class LocalFrame:
+    """A local tangent plane (ENU) with its origin at the first GNSS fix."""
+
+    def __init__(self, lat_deg: float, lon_deg: float, alt_m: float):
+        self.lat0, self.lon0, self.alt0 = lat_deg, lon_deg, alt_m
+
+    def to_en(self, lat_deg: float, lon_deg: float) -> tuple[float, float]:
+        e, n, _ = pymap3d.geodetic2enu(lat_deg, lon_deg, self.alt0, self.lat0, self.lon0, self.alt0)
+        return float(e), float(n)
+
+
+def declination_rad(lat_deg: float, lon_deg: float, alt_m: float, when: datetime.date | None = None) -> float:
+    """Magnetic declination (east positive) from the World Magnetic Model."""
+    when = when or datetime.date.today()
+    year = when.year + (when.timetuple().tm_yday - 1) / 365.25
+    r = GeoMag().calculate(glat=lat_deg, glon=lon_deg, alt=alt_m / 1000.0, time=year,
+                           allow_date_outside_lifespan=True)
+    return math.radians(r.d)
+
+
+def wrap_pi(angle: float) -> float:
+    """Wrap an angle to (-pi, pi]."""
+    return math.atan2(math.sin(angle), math.cos(angle))

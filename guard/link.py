@@ -1,0 +1,136 @@
+"""The live MAVLink link: a source of samples and the way back for alarms.
+
+Any pymavlink connection URL (`udpin:0.0.0.0:14550`, `udpout:127.0.0.1:14550`, `tcp:host:5760`,
+`/dev/ttyACM0,57600`). Only the autopilot's system id is read (`link.system_id`, 0 for any); our
+own frames (component 191) are ignored. Malformed frames and frames with a bad CRC are counted
+in `skipped` and dropped; so are unsigned or wrongly signed frames when signing is required.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from collections import Counter
+
+os.environ.setdefault("MAVLINK20", "1")     # before pymavlink is imported, or frames are MAVLink 1
+
+from pymavlink import mavutil                                   # noqa: E402
+from pymavlink.dialects.v20 import ardupilotmega as mavlink     # noqa: E402
+
+from .errors import ConfigError, SourceError   # noqa: E402
+from .mavlink import to_sample                 # noqa: E402
+
+log = logging.getLogger(__name__)
+
+COMPONENT_ID = mavlink.MAV_COMP_ID_ONBOARD_COMPUTER     # 191
+WANTED = ["GPS_RAW_INT", "RAW_IMU", "ATTITUDE"]
+STATUSTEXT_PER_S = 4                                    # rate limit of what we send
+
+
+def read_key(path: str) -> bytes:
+    """A signing key file: 32 raw bytes, or 64 hex digits."""
+    try:
+        data = open(path, "rb").read()
+    except OSError as e:
+        raise ConfigError(f"link.signing_key_file: {path}: {e.strerror}") from None
+    text = data.strip()
+    if len(text) == 64:
+        try:
+            return bytes.fromhex(text.decode())
+        except ValueError:
+            pass
+    if len(data) == 32:
+        return data
+    raise ConfigError(f"link.signing_key_file: {path}: expected 32 bytes or 64 hex digits")
+
+
+class MavlinkLink:
+    def __init__(self, url: str, cfg):
+        self.cfg = cfg
+        self.system_id = cfg.system_id
+        self.skipped: Counter[str] = Counter()
+        self.messages: Counter[str] = Counter()
+        try:
+            self.conn = mavutil.mavlink_connection(url, source_system=cfg.system_id or 1,
+                                                   source_component=COMPONENT_ID, dialect="ardupilotmega",
+                                                   autoreconnect=True)
+        except Exception as e:    # pymavlink raises many kinds (OSError, SerialException, ValueError)
+            raise SourceError(f"cannot open MAVLink link {url}: {e}") from None
+        if cfg.signing_key_file:
+            allow = None if cfg.require_signed else (lambda mav, msg_id: True)
+            self.conn.setup_signing(read_key(cfg.signing_key_file), sign_outgoing=True,
+                                    allow_unsigned_callback=allow)
+        self.t0 = time.monotonic()
+        self._next_heartbeat = 0.0
+        self._next_stat = 0.0
+        self._ratio = 0.0
+        self._sent: list[float] = []
+
+    def poll(self, timeout: float):
+        """The next sample from the autopilot, or None after `timeout` seconds without one."""
+        deadline = time.monotonic() + timeout
+        while (remaining := deadline - time.monotonic()) > 0:
+            try:
+                msg = self.conn.recv_match(blocking=True, timeout=remaining)
+            except Exception as e:      # a broken frame can surface as many exception types
+                self.skipped["bad_frame"] += 1
+                log.debug("receive error: %s", e)
+                continue
+            if msg is None:
+                return None
+            name = msg.get_type()
+            if name == "BAD_DATA":
+                reason = getattr(msg, "reason", "")
+                self.skipped["bad_signature" if "signature" in reason.lower() else "bad_frame"] += 1
+                continue
+            if msg.get_srcComponent() == COMPONENT_ID and msg.get_srcSystem() == (self.system_id or 1):
+                continue        # our own, echoed back
+            if self.system_id and msg.get_srcSystem() != self.system_id:
+                self.skipped["other_system"] += 1
+                continue
+            if name not in WANTED:
+                continue
+            self.messages[name] += 1
+            sample, reason = to_sample(msg)
+            if sample is not None:
+                return sample
+            if reason:
+                self.skipped[reason] += 1
+        return None
+
+    def tick(self) -> None:
+        """Heartbeat and the statistic, when due."""
+        now = time.monotonic()
+        if now >= self._next_heartbeat:
+            self._next_heartbeat = now + 1.0 / self.cfg.heartbeat_hz
+            self._send(lambda m: m.heartbeat_send(mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID,
+                                                  0, 0, mavlink.MAV_STATE_ACTIVE))
+        if self.cfg.statistic_hz > 0 and now >= self._next_stat:
+            self._next_stat = now + 1.0 / self.cfg.statistic_hz
+            ratio, self._ratio = self._ratio, 0.0
+            ms = int((now - self.t0) * 1000) & 0xFFFFFFFF
+            self._send(lambda m: m.named_value_float_send(ms, b"grd_ratio", ratio))
+
+    def note_ratio(self, ratio: float) -> None:
+        self._ratio = max(self._ratio, ratio)
+
+    def statustext(self, text: str, critical: bool) -> None:
+        now = time.monotonic()
+        self._sent = [t for t in self._sent if now - t < 1.0]
+        if len(self._sent) >= STATUSTEXT_PER_S:
+            self.skipped["statustext_rate_limited"] += 1
+            return
+        self._sent.append(now)
+        severity = mavlink.MAV_SEVERITY_CRITICAL if critical else mavlink.MAV_SEVERITY_NOTICE
+        self._send(lambda m: m.statustext_send(severity, text.encode()[:50]))
+
+    def _send(self, fn) -> None:
+        try:
+            fn(self.conn.mav)
+        except OSError as e:        # no peer yet (udpin before the first packet), link down
+            self.skipped["send_failed"] += 1
+            log.debug("send failed: %s", e)
+
+    def close(self) -> None:
+        self.conn.close()

@@ -1,0 +1,151 @@
+"""The MAVLink edge: messages to samples (units converted here, once), and a tlog reader.
+
+GPS_RAW_INT: lat/lon degE7, alt mm, vel cm/s, cog cdeg (UINT16_MAX = unknown), h_acc mm,
+vel_acc mm/s; fix_type < 3 is no 3D fix. RAW_IMU (ArduPilot): acceleration mG (specific force),
+gyro mrad/s, magnetometer mGauss, body FRD. ATTITUDE: roll, pitch rad; time_boot_ms.
+
+A tlog is a sequence of [8-byte big-endian unix microseconds][MAVLink frame]. The reader splits
+frames itself so that garbage between frames, bad CRCs and a truncated tail are counted and
+skipped rather than fatal, and it decodes (with pymavlink) only the messages guard uses.
+"""
+
+from __future__ import annotations
+
+import math
+import mmap
+import os
+from collections import Counter
+from collections.abc import Iterator
+
+os.environ.setdefault("MAVLINK20", "1")     # before pymavlink is imported, or frames are MAVLink 1
+
+from pymavlink.dialects.v20 import ardupilotmega as mavlink   # noqa: E402
+
+from .errors import SourceError                      # noqa: E402
+from .samples import Attitude, GnssFix, ImuSample, Sample   # noqa: E402
+
+G = 9.80665
+UNKNOWN_U16 = 65535
+WANTED = {mavlink.MAVLINK_MSG_ID_GPS_RAW_INT, mavlink.MAVLINK_MSG_ID_RAW_IMU, mavlink.MAVLINK_MSG_ID_ATTITUDE}
+V1, V2 = 0xFE, 0xFD
+
+
+def to_sample(msg) -> tuple[Sample | None, str | None]:
+    """Convert one decoded message to a sample, or (None, reason it was skipped)."""
+    name = msg.get_type()
+    if name == "GPS_RAW_INT":
+        fix_ok = msg.fix_type >= 3
+        lat, lon = msg.lat * 1e-7, msg.lon * 1e-7
+        if fix_ok and not (abs(lat) <= 90 and abs(lon) <= 180 and (lat, lon) != (0.0, 0.0)):
+            return None, "gnss_bad_position"
+        vn = ve = None
+        if msg.vel != UNKNOWN_U16 and msg.cog != UNKNOWN_U16:
+            speed, cog = msg.vel / 100.0, math.radians(msg.cog / 100.0)
+            vn, ve = speed * math.cos(cog), speed * math.sin(cog)
+        h_acc = getattr(msg, "h_acc", 0)
+        vel_acc = getattr(msg, "vel_acc", 0)
+        return GnssFix(int(msg.time_usec), fix_ok, lat, lon, msg.alt / 1000.0, vn, ve,
+                       h_acc / 1000.0 if h_acc else None, vel_acc / 1000.0 if vel_acc else None), None
+    if name == "RAW_IMU":
+        a, w = G / 1000.0, 1e-3
+        mag = (msg.xmag, msg.ymag, msg.zmag)
+        mx, my, mz = (None, None, None) if mag == (0, 0, 0) else (m / 1000.0 for m in mag)
+        return ImuSample(int(msg.time_usec), msg.xacc * a, msg.yacc * a, msg.zacc * a,
+                         msg.xgyro * w, msg.ygyro * w, msg.zgyro * w, mx, my, mz), None
+    if name == "ATTITUDE":
+        if not (math.isfinite(msg.roll) and math.isfinite(msg.pitch)) or abs(msg.pitch) > 1.5:
+            return None, "attitude_non_finite"
+        return Attitude(int(msg.time_boot_ms) * 1000, msg.roll, msg.pitch), None
+    return None, None
+
+
+class TlogReader:
+    """Iterates over the frames of a tlog; `messages` and `skipped` count what it saw."""
+
+    def __init__(self, path: str, system_id: int = 0):
+        self.path = path
+        self.system_id = system_id          # 0: any system
+        self.messages: Counter[str] = Counter()
+        self.skipped: Counter[str] = Counter()
+        self.mav = mavlink.MAVLink(None)
+        self.mav.robust_parsing = True
+        try:
+            self._file = open(path, "rb")
+        except OSError as e:
+            raise SourceError(f"{path}: cannot open: {e.strerror}") from None
+        self.size = os.fstat(self._file.fileno()).st_size
+        self.position = 0
+        self.first_time_us: int | None = None
+        self.last_time_us: int | None = None
+
+    def close(self) -> None:
+        self._file.close()
+
+    def __iter__(self) -> Iterator:
+        """Yield decoded messages of the WANTED types (others are only counted)."""
+        if self.size == 0:
+            return
+        with mmap.mmap(self._file.fileno(), 0, access=mmap.ACCESS_READ) as buf:
+            yield from self._frames(buf)
+
+    def _frames(self, buf) -> Iterator:
+        size, pos, names = self.size, 0, mavlink.mavlink_map
+        decode, count, skip = self.mav.decode, self.messages, self.skipped
+        while pos + 8 < size:
+            stx = buf[pos + 8]
+            if stx == V2 and pos + 18 <= size:
+                length = 12 + buf[pos + 9] + (13 if buf[pos + 10] & 1 else 0)
+                msgid = buf[pos + 15] | buf[pos + 16] << 8 | buf[pos + 17] << 16
+                sysid = buf[pos + 13]
+            elif stx == V1 and pos + 14 <= size:
+                length = 8 + buf[pos + 9]
+                msgid, sysid = buf[pos + 13], buf[pos + 11]
+            elif stx in (V1, V2):
+                skip["truncated"] += 1
+                break
+            else:   # not a frame here: count garbage and resynchronise on the next start byte
+                nxt = min((i for i in (buf.find(b"\xfd", pos + 9), buf.find(b"\xfe", pos + 9)) if i >= 0),
+                          default=-1)
+                skip["garbage_bytes"] += (nxt - 8 - pos) if nxt >= 0 else size - pos
+                if nxt < 0:
+                    break
+                pos = nxt - 8
+                continue
+            end = pos + 8 + length
+            if end > size:
+                skip["truncated"] += 1
+                break
+            self.position = end
+            if msgid not in WANTED:
+                kind = names.get(msgid)
+                count[kind.msgname if kind else f"UNKNOWN_{msgid}"] += 1
+                pos = end
+                continue
+            try:
+                msg = decode(bytearray(buf[pos + 8:end]))
+            except mavlink.MAVError:
+                skip["bad_crc"] += 1
+                pos += 1        # a false start byte: look for the next one
+                continue
+            count[msg.get_type()] += 1
+            if self.system_id and sysid != self.system_id:
+                skip["other_system"] += 1
+            else:
+                t = int.from_bytes(buf[pos:pos + 8], "big")
+                self.first_time_us = self.first_time_us or t
+                self.last_time_us = t
+                yield msg
+            pos = end
+        else:
+            if pos < size:
+                skip["truncated"] += 1
+
+
+def tlog_samples(reader: TlogReader) -> Iterator[Sample]:
+    """Samples of a tlog in stream order; conversion failures are counted in reader.skipped."""
+    for msg in reader:
+        sample, reason = to_sample(msg)
+        if sample is not None:
+            yield sample
+        elif reason:
+            reader.skipped[reason] += 1

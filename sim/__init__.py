@@ -1,0 +1,5 @@
+"""sim: a SITL-like ground vehicle that speaks MAVLink 2 (and DroneCAN), with attack injection.
+
+The simulator is the vehicle side. It imports nothing from `guard`: it talks to guard only through
+MAVLink bytes, CAN frames and files, exactly like a real autopilot would.
+"""

@@ -1,0 +1,104 @@
+"""MAVLink 2 output of the simulator: GPS_RAW_INT, RAW_IMU and HEARTBEAT in ArduPilot's units.
+
+Two sinks: a tlog file (8-byte big-endian unix-microsecond prefix before every frame, written as
+fast as possible) and a live pymavlink link (`udpout:127.0.0.1:14550`, `tcp:...`), which also
+receives what the monitor sends back (STATUSTEXT), as an autopilot would.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import struct
+
+os.environ.setdefault("MAVLINK20", "1")     # before pymavlink is imported, or frames are MAVLink 1
+
+from pymavlink import mavutil                          # noqa: E402
+from pymavlink.dialects.v20 import ardupilotmega as mavlink   # noqa: E402
+
+from .sensors import G, ImuReading                     # noqa: E402
+
+SYSTEM_ID = 1
+COMPONENT_ID = mavlink.MAV_COMP_ID_AUTOPILOT1
+TLOG_EPOCH_US = 1_767_225_600_000_000     # 2026-01-01T00:00:00Z: tlog prefix = epoch + simulated time
+
+
+def _i16(x: float) -> int:
+    return max(-32768, min(32767, int(round(x))))
+
+
+def _u16(x: float) -> int:
+    return max(0, min(65535, int(round(x))))
+
+
+class Encoder:
+    """Builds the simulator's messages (one MAVLink instance keeps the sequence numbers)."""
+
+    def __init__(self):
+        self.mav = mavlink.MAVLink(None, srcSystem=SYSTEM_ID, srcComponent=COMPONENT_ID)
+
+    def pack(self, msg) -> bytes:
+        """Serialise one message with the next sequence number."""
+        buf = msg.pack(self.mav)
+        self.mav.seq = (self.mav.seq + 1) % 256
+        return buf
+
+    def heartbeat(self):
+        return self.mav.heartbeat_encode(mavlink.MAV_TYPE_GROUND_ROVER, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                         mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mavlink.MAV_MODE_FLAG_SAFETY_ARMED,
+                                         10, mavlink.MAV_STATE_ACTIVE)
+
+    def gps_raw_int(self, t_us: int, lat_deg: float, lon_deg: float, alt_m: float, vel_n: float, vel_e: float,
+                    h_acc_m: float, vel_acc_mps: float, fix_type: int = 3):
+        speed = math.hypot(vel_n, vel_e)
+        cog = math.degrees(math.atan2(vel_e, vel_n)) % 360.0
+        return self.mav.gps_raw_int_encode(
+            t_us, fix_type, int(round(lat_deg * 1e7)), int(round(lon_deg * 1e7)), int(round(alt_m * 1000)),
+            100, 150, _u16(speed * 100), _u16(cog * 100) % 36000, 12,
+            alt_ellipsoid=int(round(alt_m * 1000)), h_acc=int(h_acc_m * 1000), v_acc=int(h_acc_m * 1500),
+            vel_acc=int(vel_acc_mps * 1000), hdg_acc=0, yaw=0)
+
+    def raw_imu(self, t_us: int, imu: ImuReading):
+        acc = [_i16(a / G * 1000.0) for a in imu.acc_frd]          # mG
+        gyro = [_i16(w * 1000.0) for w in imu.gyro_frd]            # mrad/s
+        mag = [_i16(m * 1000.0) for m in imu.mag_frd]              # mGauss
+        return self.mav.raw_imu_encode(t_us, *acc, *gyro, *mag, id=0, temperature=2500)
+
+
+class TlogWriter:
+    """Writes frames with the tlog's time prefix."""
+
+    def __init__(self, path: str, encoder: Encoder):
+        self.f = open(path, "wb")
+        self.encoder = encoder
+
+    def send(self, t_us: int, msg) -> None:
+        self.f.write(struct.pack(">Q", TLOG_EPOCH_US + t_us) + self.encoder.pack(msg))
+
+    def close(self) -> None:
+        self.f.close()
+
+
+class LiveLink:
+    """A pymavlink connection: sends our frames and hands back STATUSTEXT from other systems."""
+
+    def __init__(self, url: str, encoder: Encoder):
+        self.conn = mavutil.mavlink_connection(url, source_system=SYSTEM_ID, source_component=COMPONENT_ID,
+                                               dialect="ardupilotmega", autoreconnect=True)
+        self.encoder = encoder
+
+    def send(self, t_us: int, msg) -> None:
+        try:
+            self.conn.write(self.encoder.pack(msg))
+        except OSError:
+            pass    # nobody listening yet (UDP refused): a real radio link drops frames too
+
+    def receive(self, timeout_s: float):
+        """Wait up to timeout_s for a STATUSTEXT from another system; None when none came."""
+        msg = self.conn.recv_match(type="STATUSTEXT", blocking=True, timeout=max(0.0, timeout_s))
+        if msg is not None and msg.get_srcSystem() == SYSTEM_ID and msg.get_srcComponent() == COMPONENT_ID:
+            return None
+        return msg
+
+    def close(self) -> None:
+        self.conn.close()

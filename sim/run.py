@@ -1,0 +1,175 @@
+"""The simulator's main loop: vehicle, sensors and attacks on one integer-microsecond clock.
+
+Every sensor ticks at an exact multiple of its period from t = 0, so GNSS sample k is taken at
+k / gnss_hz seconds: with GNSS at 10 Hz, an attack starting at 40 s hits GNSS sample 400 first.
+At equal time stamps the IMU sample is sent before the GNSS sample.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from dataclasses import asdict
+
+import pymap3d
+
+from .mavout import Encoder, LiveLink, TlogWriter
+from .scenario import Scenario
+from .sensors import Sensors
+from .vehicle import Vehicle
+
+log = logging.getLogger(__name__)
+
+PHYSICS_STEP_US = 5000      # the vehicle is integrated at 200 Hz or finer
+
+
+def period_us(hz: float) -> int:
+    return int(round(1e6 / hz))
+
+
+def truth_record(scenario: Scenario, seed: int, sensors: Sensors, trajectory: dict) -> dict:
+    """The ground truth written beside a tlog as NAME.truth.json (DESIGN.md, Contracts)."""
+    gnss_us = period_us(scenario.rates.gnss_hz)
+
+    def clean(obj):     # JSON has no infinity: an attack without an end lasts "until the end"
+        return {k: ("end" if isinstance(v, float) and math.isinf(v) else v) for k, v in obj.items()}
+
+    attacks = []
+    for a in scenario.attacks:
+        start_us = int(round(a.start_s * 1e6))
+        attacks.append({"kind": a.kind, "sensor": a.sensor, "channel": a.channel, "magnitude": a.magnitude,
+                        "start_time_usec": start_us, "start_gnss_index": -(-start_us // gnss_us),
+                        "duration_s": "end" if math.isinf(a.duration_s) else a.duration_s})
+    return {
+        "scenario": scenario.name,
+        "description": scenario.description,
+        "seed": seed,
+        "duration_s": scenario.duration_s,
+        "rates": asdict(scenario.rates),
+        "noise": asdict(scenario.noise),
+        "start": asdict(scenario.start),
+        "route": clean(asdict(scenario.route)),
+        "attacks": attacks,
+        "drawn": {"gyro_bias_radps": sensors.gyro_bias.tolist(), "accel_bias_mps2": sensors.accel_bias.tolist()},
+        "trajectory": trajectory,
+    }
+
+
+class Simulation:
+    """One run of a scenario. Sinks get (t_us, message); `on_gnss` lets a CAN publisher ride along."""
+
+    def __init__(self, scenario: Scenario, seed: int):
+        self.scenario = scenario
+        self.seed = seed
+        self.encoder = Encoder()
+        self.sensors = Sensors(scenario, seed)
+        self.vehicle = Vehicle(scenario.route, scenario.start.heading_deg)
+        self.trajectory = {"t_usec": [], "lat_deg": [], "lon_deg": [], "east_m": [], "north_m": [], "yaw_rad": [],
+                           "speed_mps": []}
+
+    def ticks(self):
+        """Yield (t_us, [messages]) in time order, advancing the vehicle between ticks."""
+        sc, st = self.scenario, self.scenario.start
+        imu_us, gnss_us, hb_us = (period_us(sc.rates.imu_hz), period_us(sc.rates.gnss_hz),
+                                  period_us(sc.rates.heartbeat_hz))
+        tick_us = math.gcd(imu_us, gnss_us, hb_us)
+        substeps = -(-tick_us // PHYSICS_STEP_US)
+        dt = tick_us / substeps / 1e6
+        end_us = int(round(sc.duration_s * 1e6))
+        fed = (0.0, 0.0, 0.0)       # the controller's position: last GNSS fix (east, north) and its time
+        enc, veh = self.encoder, self.vehicle
+        t_us = 0
+        while t_us <= end_us:
+            t_s = t_us / 1e6
+            s = veh.s
+            out = []
+            if t_us % hb_us == 0:
+                out.append(enc.heartbeat())
+            if t_us % imu_us == 0:
+                out.append(enc.raw_imu(t_us, self.sensors.imu(t_s, s)))
+            if t_us % gnss_us == 0:
+                g = self.sensors.gnss(t_s, s)
+                lat, lon, alt = pymap3d.enu2geodetic(g.east_m, g.north_m, 0.0, st.lat_deg, st.lon_deg, st.alt_m)
+                n = sc.noise
+                out.append(enc.gps_raw_int(t_us, lat, lon, alt, g.vel_n_mps, g.vel_e_mps, n.gnss_h_acc_m,
+                                           max(n.gnss_vel_white_mps, 0.01)))
+                fed = (g.east_m, g.north_m, t_s)
+                tlat, tlon, _ = pymap3d.enu2geodetic(s.e, s.n, 0.0, st.lat_deg, st.lon_deg, st.alt_m)
+                for key, value in zip(self.trajectory, (t_us, tlat, tlon, s.e, s.n, s.psi, s.v)):
+                    self.trajectory[key].append(round(value, 9) if isinstance(value, float) else value)
+            yield t_us, out
+            for _ in range(substeps):
+                # dead-reckon the fed fix by the vehicle's own odometry since it arrived
+                age = t_s - fed[2]
+                fe = fed[0] + age * s.v * math.cos(s.psi)
+                fn = fed[1] + age * s.v * math.sin(s.psi)
+                veh.step(dt, *veh.command(fe, fn))
+                t_s += dt
+            t_us += tick_us
+
+    def truth(self) -> dict:
+        return truth_record(self.scenario, self.seed, self.sensors, self.trajectory)
+
+
+def run(scenario: Scenario, seed: int, *, tlog: str | None = None, out: str | None = None,
+        speedup: float = 1.0, fast: bool = False, on_statustext=None, can=None) -> dict:
+    """Run a scenario to the end; returns the truth record (and writes NAME.truth.json beside a tlog).
+
+    `tlog` writes a file, `out` sends live MAVLink; live output is paced at `speedup` times real
+    time unless `fast`. `on_statustext(msg)` is called for every STATUSTEXT received on `out`.
+    `can` is an object with send_gnss/send_imu/send_mag (sim.canbus.CanPublisher) or None.
+    """
+    sim = Simulation(scenario, seed)
+    writer = TlogWriter(tlog, sim.encoder) if tlog else None
+    link = LiveLink(out, sim.encoder) if out else None
+    paced = link is not None and not fast
+    wall0 = time.monotonic()
+    try:
+        for t_us, messages in sim.ticks():
+            if paced:
+                target = wall0 + t_us / 1e6 / speedup
+                while (remaining := target - time.monotonic()) > 0:
+                    msg = link.receive(min(remaining, 0.05))
+                    if msg is not None and on_statustext:
+                        on_statustext(msg)
+            for msg in messages:
+                if writer:
+                    writer.send(t_us, msg)
+                if link:
+                    link.send(t_us, msg)
+                if can is not None:
+                    _to_can(can, t_us, msg)
+        if link is not None:    # a last moment for the monitor's answers
+            deadline = time.monotonic() + 1.0
+            while time.monotonic() < deadline:
+                msg = link.receive(0.05)
+                if msg is not None and on_statustext:
+                    on_statustext(msg)
+    finally:
+        if writer:
+            writer.close()
+        if link:
+            link.close()
+    truth = sim.truth()
+    if tlog:
+        stem = tlog[:-5] if tlog.endswith(".tlog") else tlog
+        with open(stem + ".truth.json", "w") as f:
+            json.dump(truth, f, indent=1)
+    return truth
+
+
+def _to_can(can, t_us: int, msg) -> None:
+    """Publish the same sample on a CAN bus as DroneCAN (units back from ArduPilot's)."""
+    name = msg.get_type()
+    if name == "GPS_RAW_INT":
+        speed, cog = msg.vel / 100.0, math.radians(msg.cog / 100.0)
+        can.send_gnss(t_us, msg.lat / 1e7, msg.lon / 1e7, msg.alt / 1000.0, speed * math.cos(cog),
+                      speed * math.sin(cog), 0.0, msg.fix_type >= 3, msg.h_acc / 1000.0)
+    elif name == "RAW_IMU":
+        g = 9.80665
+        can.send_imu(t_us, (msg.xacc * g / 1000, msg.yacc * g / 1000, msg.zacc * g / 1000),
+                     (msg.xgyro / 1000, msg.ygyro / 1000, msg.zgyro / 1000))
+        can.send_mag(t_us, (msg.xmag / 1000, msg.ymag / 1000, msg.zmag / 1000))
+

@@ -1,0 +1,125 @@
+"""Sensor models: white noise, a bias drawn once per run, correlated GNSS error, and attacks.
+
+GNSS: position error = white + first-order Gauss-Markov (real receivers' error is correlated over
+tens of seconds); velocity white. IMU in body axes FRD (x forward, y right, z down): the
+accelerometer measures specific force (-g on z at rest), the gyro the body rate, plus white noise
+and a constant bias. Magnetometer: the World Magnetic Model's field at the start, rotated into the
+body frame by the vehicle's heading, plus white noise.
+
+Attacks add to the measurement, after the noise: y_alpha(k) = C x(k) + alpha(k) + omega(k).
+"""
+
+from __future__ import annotations
+
+import datetime
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from pygeomag import GeoMag
+
+from .scenario import Attack, Scenario
+from .vehicle import State
+
+G = 9.80665
+
+
+@dataclass(frozen=True)
+class GnssReading:
+    east_m: float
+    north_m: float
+    vel_e_mps: float
+    vel_n_mps: float
+
+
+@dataclass(frozen=True)
+class ImuReading:
+    acc_frd: tuple[float, float, float]      # m/s^2, specific force
+    gyro_frd: tuple[float, float, float]     # rad/s
+    mag_frd: tuple[float, float, float]      # gauss
+
+
+def earth_field_ned_gauss(lat_deg: float, lon_deg: float, alt_m: float) -> np.ndarray:
+    """The World Magnetic Model's field (north, east, down) in gauss, this year."""
+    now = datetime.date.today()
+    year = now.year + (now.timetuple().tm_yday - 1) / 365.25
+    r = GeoMag().calculate(glat=lat_deg, glon=lon_deg, alt=alt_m / 1000.0, time=year, allow_date_outside_lifespan=True)
+    return np.array([r.x, r.y, r.z]) * 1e-5    # nT -> gauss
+
+
+class Sensors:
+    """Draws every error from its own seeded stream, so changing one rate leaves the others alone."""
+
+    def __init__(self, scenario: Scenario, seed: int):
+        self.noise = scenario.noise
+        self.attacks = scenario.attacks
+        gnss, imu, mag, bias = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4))
+        self.rng_gnss, self.rng_imu, self.rng_mag = gnss, imu, mag
+        n = self.noise
+        self.gyro_bias = bias.normal(0.0, n.gyro_bias_radps, 3)
+        self.accel_bias = bias.normal(0.0, n.accel_bias_mps2, 3)
+        self.markov = gnss.normal(0.0, n.gnss_pos_markov_m, 2)      # (east, north)
+        st = scenario.start
+        self.field_ned = earth_field_ned_gauss(st.lat_deg, st.lon_deg, st.alt_m)
+        self.frozen: GnssReading | None = None
+        self.last_gnss_t: float | None = None
+
+    def _offset(self, t_s: float, sensor: str, channel: str) -> float:
+        total = 0.0
+        for a in self.attacks:
+            if a.sensor == sensor and a.channel == channel and a.active(t_s):
+                total += attack_value(a, t_s)
+        return total
+
+    def gnss(self, t_s: float, s: State) -> GnssReading:
+        n = self.noise
+        if self.last_gnss_t is not None and n.gnss_pos_markov_tau_s > 0:
+            # Gauss-Markov: b(k+1) = phi b(k) + sqrt(1 - phi^2) sigma w(k)
+            phi = math.exp(-(t_s - self.last_gnss_t) / n.gnss_pos_markov_tau_s)
+            self.markov = phi * self.markov + math.sqrt(1 - phi * phi) * self.rng_gnss.normal(0, n.gnss_pos_markov_m, 2)
+        self.last_gnss_t = t_s
+        white = self.rng_gnss.normal(0.0, n.gnss_pos_white_m, 2)
+        vel_noise = self.rng_gnss.normal(0.0, n.gnss_vel_white_mps, 2)
+        reading = GnssReading(
+            east_m=s.e + self.markov[0] + white[0] + self._offset(t_s, "gnss_pos", "east"),
+            north_m=s.n + self.markov[1] + white[1] + self._offset(t_s, "gnss_pos", "north"),
+            vel_e_mps=s.v * math.cos(s.psi) + vel_noise[0] + self._offset(t_s, "gnss_vel", "east"),
+            vel_n_mps=s.v * math.sin(s.psi) + vel_noise[1] + self._offset(t_s, "gnss_vel", "north"),
+        )
+        for a in self.attacks:
+            if a.active(t_s) and a.kind == "spoof":
+                tau = t_s - a.start_s
+                de, dn = (1.0, 0.0) if a.channel == "east" else (0.0, 1.0)
+                pos, vel = 0.5 * a.magnitude * tau * tau, a.magnitude * tau
+                reading = GnssReading(reading.east_m + de * pos, reading.north_m + dn * pos,
+                                      reading.vel_e_mps + de * vel, reading.vel_n_mps + dn * vel)
+        if any(a.kind == "freeze" and a.active(t_s) for a in self.attacks):
+            self.frozen = self.frozen or reading
+            return self.frozen
+        self.frozen = None
+        return reading
+
+    def imu(self, t_s: float, s: State) -> ImuReading:
+        n = self.noise
+        # specific force in FRD: forward accel, centripetal (left turn -> -y), -g on z
+        acc = np.array([s.accel, -s.omega * s.v, -G]) + self.accel_bias + self.rng_imu.normal(0, n.accel_white_mps2, 3)
+        gyro = np.array([0.0, 0.0, -s.omega]) + self.gyro_bias + self.rng_imu.normal(0, n.gyro_white_radps, 3)
+        # field in body axes: rotate NED by the compass heading chi = pi/2 - psi
+        chi = math.pi / 2 - s.psi
+        fn, fe, fd = self.field_ned
+        mag = np.array([fn * math.cos(chi) + fe * math.sin(chi), -fn * math.sin(chi) + fe * math.cos(chi), fd])
+        mag = mag + self.rng_mag.normal(0, n.mag_white_gauss, 3)
+        for i, axis in enumerate("xyz"):
+            acc[i] += self._offset(t_s, "accel", axis)
+            gyro[i] += self._offset(t_s, "gyro", axis)
+            mag[i] += self._offset(t_s, "mag", axis)
+        return ImuReading(tuple(acc), tuple(gyro), tuple(mag))
+
+
+def attack_value(a: Attack, t_s: float) -> float:
+    """alpha(t) of one attack on its channel (step, bias: constant; ramp: linear in time)."""
+    if a.kind in ("step", "bias"):
+        return a.magnitude
+    if a.kind == "ramp":
+        return a.magnitude * (t_s - a.start_s)
+    return 0.0      # freeze and spoof act on the whole fix, in Sensors.gnss

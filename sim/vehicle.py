@@ -1,0 +1,86 @@
+"""The vehicle: the paper's planar kinematics and a pure-pursuit controller.
+
+True state: east e, north n (metres from the start), ENU yaw psi (0 = east, counter-clockwise),
+forward speed v and yaw rate omega. A ground vehicle does not slip sideways, so the body velocity is
+(v, 0) and, as in the paper's model,
+    e' = v cos(psi),  n' = v sin(psi),  psi' = omega.
+The controller steers on the position it is *fed* (the GNSS fix, attacked or not, dead-reckoned
+between fixes), so a GNSS attack really pulls the vehicle off its path, as in the paper's loop.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from .scenario import Route
+
+
+@dataclass
+class State:
+    e: float = 0.0
+    n: float = 0.0
+    psi: float = 0.0
+    v: float = 0.0
+    omega: float = 0.0
+    accel: float = 0.0      # dv/dt over the last step, m/s^2
+
+
+class Vehicle:
+    """Integrates the kinematics and follows the route's waypoints."""
+
+    def __init__(self, route: Route, heading_deg: float):
+        self.route = route
+        self.s = State(psi=math.radians(90.0 - heading_deg))
+        self.points = [p[:2] for p in route.waypoints_m]
+        self.speeds = [p[2] if len(p) == 3 else route.speed_mps for p in route.waypoints_m]
+        self.leg = 0            # heading from points[leg] to points[leg + 1]
+        self.done = False
+
+    def _leg(self, i: int) -> tuple[tuple[float, float], tuple[float, float]]:
+        n = len(self.points)
+        return self.points[i % n], self.points[(i + 1) % n]
+
+    def command(self, fed_e: float, fed_n: float) -> tuple[float, float]:
+        """Pure pursuit from the fed position: (target speed, target yaw rate)."""
+        r = self.route
+        (ax, ay), (bx, by) = self._leg(self.leg)
+        dx, dy = bx - ax, by - ay
+        length = math.hypot(dx, dy) or 1e-9
+        ux, uy = dx / length, dy / length
+        along = (fed_e - ax) * ux + (fed_n - ay) * uy
+        last = not r.loop and self.leg >= len(self.points) - 2
+        if length - along < r.lookahead_m:
+            if last:
+                if length - along < 1.0 or along > length:
+                    self.done = True
+            else:
+                self.leg += 1
+                return self.command(fed_e, fed_n)
+        s = min(max(along, 0.0) + r.lookahead_m, length)
+        tx, ty = ax + s * ux, ay + s * uy
+        alpha = math.atan2(ty - fed_n, tx - fed_e) - self.s.psi
+        alpha = math.atan2(math.sin(alpha), math.cos(alpha))
+        speed = 0.0 if self.done else self.speeds[(self.leg + 1) % len(self.points)]
+        if last:    # slow down to stop at the final waypoint
+            speed = min(speed, math.sqrt(max(0.0, 2 * 0.5 * r.max_accel_mps2 * (length - along))))
+        # curvature of the arc through the target: kappa = 2 sin(alpha) / L
+        omega = self.s.v * 2.0 * math.sin(alpha) / r.lookahead_m
+        if self.s.v < 0.5:      # turn on the spot gently before moving off
+            omega = 0.3 * alpha
+        lim = r.max_yaw_rate_radps
+        return speed, max(-lim, min(lim, omega))
+
+    def step(self, dt: float, speed_cmd: float, omega_cmd: float) -> None:
+        """Advance the true state by dt seconds (accel and yaw acceleration limited)."""
+        s, r = self.s, self.route
+        dv = max(-r.max_accel_mps2 * dt, min(r.max_accel_mps2 * dt, speed_cmd - s.v))
+        domega = max(-2.0 * dt, min(2.0 * dt, omega_cmd - s.omega))
+        s.omega += domega
+        v_mid = s.v + dv / 2
+        psi_mid = s.psi + s.omega * dt / 2
+        s.e += dt * v_mid * math.cos(psi_mid)
+        s.n += dt * v_mid * math.sin(psi_mid)
+        s.psi = math.atan2(math.sin(s.psi + s.omega * dt), math.cos(s.psi + s.omega * dt))
+        s.v += dv
+        s.accel = dv / dt if dt > 0 else 0.0
