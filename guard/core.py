@@ -26,6 +26,10 @@ from .events import CHANNELS, Alarm, Cleared, Estimate, Event, Innovation, Notic
 from .geo import LocalFrame, declination_rad
 from .samples import Attitude, GnssFix, ImuSample
 
+# rows of the stacked IMU measurement that belong to each sensor: (sensor, first, last + 1)
+IMU_BLOCKS = (("mag", 0, 1), ("gyro", 1, 2), ("accel", 2, 4))
+IMU_BLOCKS_NO_MAG = (("gyro", 0, 1), ("accel", 1, 3))
+
 
 @dataclass(frozen=True)
 class MonitorConfig:
@@ -39,16 +43,28 @@ class MonitorConfig:
 
 
 class Monitor:
-    """Runs the EKF and the detector over a stream of samples."""
+    """Runs the EKF and the detector over a stream of samples.
 
-    def __init__(self, cfg: MonitorConfig | None = None):
+    `record_tests`: emit a Tested event (innovation, statistic, threshold) for every fusion. Sinks
+    that log or plot them need it; a bare replay does not, and skips the cost.
+    """
+
+    def __init__(self, cfg: MonitorConfig | None = None, record_tests: bool = True):
         self.cfg = cfg or MonitorConfig()
+        self.record_tests = record_tests
         n_channels = sum(len(c) for s, c in CHANNELS.items() if s != "gnss_vel" or self.cfg.filter.use_gnss_velocity)
         self.detector = make_detector(self.cfg.detector, n_channels)
+        f = self.cfg.filter
+        # R: measurement noise covariance of each measurement set
+        self.R_pos = np.eye(2) * f.gnss_pos_sigma_m ** 2
+        self.R_vel = np.eye(2) * f.gnss_vel_sigma_mps ** 2
+        self.R_imu = np.diag(np.square([f.heading_sigma_rad, f.gyro_sigma_radps, f.accel_sigma_mps2,
+                                        f.accel_sigma_mps2]))
+        self.R_imu_no_mag = self.R_imu[1:, 1:].copy()
         self.skipped: Counter[str] = Counter()
         self.gnss_index = -1
         self.roll = self.pitch = 0.0
-        self._last_heading: float | None = None
+        self._last_mag: tuple[float, float] | None = None     # levelled (m_x, m_y) of the latest IMU sample
         self._reset()
 
     def _reset(self) -> None:
@@ -100,14 +116,13 @@ class Monitor:
         if self.ekf is None:
             return events + self._initialise(fix)
         self._advance(fix.t_us)
-        ekf, cfg = self.ekf, self.cfg.filter
+        ekf = self.ekf
         e, n = self.frame.to_en(fix.lat_deg, fix.lon_deg)
-        R = np.eye(2) * cfg.gnss_pos_sigma_m ** 2
-        events += self._measure("gnss_pos", fix.t_us, np.array([e, n]), ekf.x[:2].copy(), H_POS, R)
-        if cfg.use_gnss_velocity:
+        events += self._measure("gnss_pos", fix.t_us, np.array([e, n]), ekf.x[:2].copy(), H_POS, self.R_pos)
+        if self.cfg.filter.use_gnss_velocity and fix.vel_n_mps is not None:
             hx, H = gnss_velocity_model(ekf.x)
-            R = np.eye(2) * cfg.gnss_vel_sigma_mps ** 2
-            events += self._measure("gnss_vel", fix.t_us, np.array([fix.vel_e_mps, fix.vel_n_mps]), hx, H, R)
+            events += self._measure("gnss_vel", fix.t_us, np.array([fix.vel_e_mps, fix.vel_n_mps]), hx, H,
+                                    self.R_vel)
         x, f = ekf.x, self.frame
         events.append(Estimate(fix.t_us, self.gnss_index, float(x[0]), float(x[1]), float(x[TH]), x.copy(),
                                np.diagonal(ekf.P).copy(), (f.lat0, f.lon0, f.alt0)))
@@ -118,55 +133,55 @@ class Monitor:
         dec = self.cfg.declination_deg
         self.declination = declination_rad(fix.lat_deg, fix.lon_deg, fix.alt_m) if dec is None else math.radians(dec)
         x0 = np.zeros(N_STATES)
-        speed = math.hypot(fix.vel_e_mps, fix.vel_n_mps)
-        heading = self._last_heading
-        if heading is None:
-            heading = math.atan2(fix.vel_n_mps, fix.vel_e_mps) if speed > 1.0 else 0.0
+        ve, vn = fix.vel_e_mps or 0.0, fix.vel_n_mps or 0.0
+        if self._last_mag is not None:
+            heading = self._heading(*self._last_mag)
+        else:
+            heading = math.atan2(vn, ve) if math.hypot(ve, vn) > 1.0 else 0.0
         x0[TH] = heading
         # body velocity from the ground velocity: v_body = R(theta)^T v_en
-        x0[VX] = math.cos(heading) * fix.vel_e_mps + math.sin(heading) * fix.vel_n_mps
-        x0[VY] = -math.sin(heading) * fix.vel_e_mps + math.cos(heading) * fix.vel_n_mps
+        x0[VX] = math.cos(heading) * ve + math.sin(heading) * vn
+        x0[VY] = -math.sin(heading) * ve + math.cos(heading) * vn
         self.ekf = NavEKF(self.cfg.filter, x0)
         self.t_us = fix.t_us
         return [Notice(fix.t_us, "info", f"filter initialised at {fix.lat_deg:.6f}, {fix.lon_deg:.6f}")]
 
     # -- IMU ------------------------------------------------------------------------------------
     def _imu(self, s: ImuSample) -> list[Event]:
-        ax, ay, rate, heading = self._level(s)
-        if heading is not None:
-            self._last_heading = heading
+        ax, ay, rate, mag = self._level(s)
+        self._last_mag = mag
         if self.ekf is None:
             self.skipped["imu_before_first_fix"] += 1
             return []
         self._advance(s.t_us)
-        cfg = self.cfg.filter
+        heading = None if mag is None else self._heading(*mag)
         if heading is None:
             self.skipped["imu_no_magnetometer"] += 1
-            z, H = np.array([rate, ax, ay]), H_IMU_NO_MAG
-            sig = (cfg.gyro_sigma_radps, cfg.accel_sigma_mps2, cfg.accel_sigma_mps2)
+            z, H, R, blocks = np.array([rate, ax, ay]), H_IMU_NO_MAG, self.R_imu_no_mag, IMU_BLOCKS_NO_MAG
         else:
-            z, H = np.array([heading, rate, ax, ay]), H_IMU
-            sig = (cfg.heading_sigma_rad, cfg.gyro_sigma_radps, cfg.accel_sigma_mps2, cfg.accel_sigma_mps2)
-        R = np.diag(np.square(sig))
-        r, S = self.ekf.innovation(z, H @ self.ekf.x, H, R, angle_rows=(0,) if heading is not None else ())
+            z, H, R, blocks = np.array([heading, rate, ax, ay]), H_IMU, self.R_imu, IMU_BLOCKS
+        r, S, PHT = self.ekf.innovation(z, H @ self.ekf.x, H, R, angle_rows=(0,) if heading is not None else ())
         # one stacked update, tested sensor by sensor
-        blocks = (("mag", 0, 1), ("gyro", 1, 2), ("accel", 2, 4)) if heading is not None else \
-                 (("gyro", 0, 1), ("accel", 1, 3))
         events: list[Event] = []
-        keep = []
+        keep: list[int] = []
         for sensor, i, j in blocks:
             ev, fused = self._test(sensor, s.t_us, r[i:j], S[i:j, i:j])
             events += ev
             if fused:
                 keep.extend(range(i, j))
-        if keep:
-            if len(keep) < len(r):
-                r, S, H, R = r[keep], S[np.ix_(keep, keep)], H[keep], R[np.ix_(keep, keep)]
-            self.ekf.fuse(r, S, H, R)
+        if len(keep) == len(r):
+            self.ekf.fuse(r, S, H, R, PHT)
+        elif keep:
+            ix = np.ix_(keep, keep)
+            self.ekf.fuse(r[keep], S[ix], H[keep], R[ix], PHT[:, keep])
         return events
 
+    def _heading(self, mx: float, my: float) -> float:
+        """ENU yaw from the levelled field: compass chi = atan2(-m_y, m_x) + declination, theta = pi/2 - chi."""
+        return math.remainder(math.pi / 2 - (math.atan2(-my, mx) + self.declination), math.tau)
+
     def _level(self, s: ImuSample):
-        """Horizontal specific force (forward, left), ENU yaw rate and true heading from one sample.
+        """Horizontal specific force (forward, left), ENU yaw rate and the levelled field (m_x, m_y).
 
         The body axes are FRD; a tilted IMU is rotated to the local level frame with the latest
         roll phi and pitch p: v_level = R_y(p) R_x(phi) v_body.
@@ -186,18 +201,15 @@ class Monitor:
                 my = cr * s.mag_y_gauss - sr * s.mag_z_gauss
             else:
                 mx = my = None
-        heading = None
-        if mx is not None and math.hypot(mx, my) > 1e-3:
-            # compass heading chi = atan2(-m_y, m_x) + declination; ENU yaw theta = pi/2 - chi
-            heading = math.remainder(math.pi / 2 - (math.atan2(-my, mx) + self.declination), math.tau)
-        return fx, -fy, -yaw_rate_ned, heading
+        mag = (mx, my) if mx is not None and math.hypot(mx, my) > 1e-3 else None
+        return fx, -fy, -yaw_rate_ned, mag
 
     # -- testing and fusing -----------------------------------------------------------------------
     def _measure(self, sensor, t_us, z, hx, H, R) -> list[Event]:
-        r, S = self.ekf.innovation(z, hx, H, R)
+        r, S, PHT = self.ekf.innovation(z, hx, H, R)
         events, fused = self._test(sensor, t_us, r, S)
         if fused:
-            self.ekf.fuse(r, S, H, R)
+            self.ekf.fuse(r, S, H, R, PHT)
         return events
 
     def _test(self, sensor: str, t_us: int, r: np.ndarray, S: np.ndarray) -> tuple[list[Event], bool]:
@@ -222,5 +234,6 @@ class Monitor:
                 del self.excluded[sensor]
                 events += [Cleared(t_us, self.gnss_index, sensor, c) for c in names]
                 fused = True
-        events.insert(0, Tested(Innovation(t_us, sensor, names, r, S, fused), self.gnss_index, stat, thr))
+        if self.record_tests:
+            events.insert(0, Tested(Innovation(t_us, sensor, names, r, S, fused), self.gnss_index, stat, thr))
         return events, fused

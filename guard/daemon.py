@@ -45,6 +45,8 @@ class Daemon:
         self.mcap_path = cfg.log.mcap if mcap is None else mcap
         self.out = out                      # where operator lines go (the terminal)
         self.monitor = Monitor(cfg.monitor)
+        self.samples = 0
+        self._log_errors = 0
         self.notifier = Notifier()
         self.should_exit = False
         self.force_exit = False
@@ -57,13 +59,20 @@ class Daemon:
 
     # -- life cycle ---------------------------------------------------------------------------------
     def run(self) -> int:
+        """The command: serve() with SIGINT and SIGTERM handled."""
         self.install_signal_handlers()
+        try:
+            return self.serve()
+        finally:
+            self.restore_signal_handlers()
+
+    def serve(self) -> int:
+        """Until should_exit is set (by a signal, or by the caller from another thread)."""
         try:
             self.startup()
             self.main_loop()
         finally:
             self.shutdown()
-            self.restore_signal_handlers()
         return 0
 
     def startup(self) -> None:
@@ -107,10 +116,14 @@ class Daemon:
 
     def handle(self, sample) -> list:
         """One sample through the core and out to the sinks."""
+        self.samples += 1
         events = self.monitor.step(sample)
         if self.log is not None:
             self.log.on_sample(sample)
             self.log.on_events(events)
+            if self.log.errors > self._log_errors:      # the sink logged why; tell the operator too
+                self._log_errors = self.log.errors
+                self._operator("MCAP log lost: still detecting")
         for e in events:
             if isinstance(e, Tested):
                 if self.link is not None:
@@ -135,6 +148,15 @@ class Daemon:
         if send and self.link is not None:
             self.link.statustext(f"GUARD {text}", critical=False)
 
+    def summary(self) -> str:
+        skipped = Counter(self.monitor.skipped)
+        for part in {id(p): p for p in (self.source, self.link) if p is not None}.values():
+            skipped.update(getattr(part, "skipped", None) or getattr(part, "stats", None) or {})
+        skipped = {k: v for k, v in sorted(skipped.items()) if v}
+        lost = f", MCAP errors {self.log.errors} ({self.log.lost_messages} messages lost)" if self.log and \
+            self.log.errors else ""
+        return f"guard: stopped after {self.samples} samples, {self.alarms} alarm(s); skipped {skipped}{lost}"
+
     def shutdown(self) -> None:
         self.notifier.stopping()
         if self.log is not None:
@@ -146,6 +168,7 @@ class Daemon:
                 part.close()
             except (OSError, SourceError) as e:
                 log.warning("closing %s: %s", type(part).__name__, e)
+        self.out(self.summary())
 
     # -- signals --------------------------------------------------------------------------------------
     def install_signal_handlers(self) -> None:

@@ -89,7 +89,7 @@ class NavEKF:
         if T <= 0.0:
             return
         x, c, F = self.x, self.c, self._F
-        th, vx, vy, w = x[TH], x[VX], x[VY], x[W]
+        th, vx, vy, w, ax, ay = x[TH:BW].tolist()
         cs, sn = math.cos(th), math.sin(th)
         # F = df/dx, evaluated at the prior state
         F[X, TH], F[X, VX], F[X, VY] = T * (-vx * sn - vy * cs), T * cs, -T * sn
@@ -101,31 +101,34 @@ class NavEKF:
         x[X] += T * (vx * cs - vy * sn)
         x[Y] += T * (vx * sn + vy * cs)
         x[TH] = math.remainder(th + T * w, math.tau)
-        x[VX] += T * (x[AX] + c * w * vy)
-        x[VY] += T * (x[AY] - c * w * vx)
+        x[VX] += T * (ax + c * w * vy)
+        x[VY] += T * (ay - c * w * vx)
         # P = F P Fᵀ + Q,  Q = q T
         self.P = F @ self.P @ F.T
         self.P[np.diag_indices(N_STATES)] += self.q * T
 
     def innovation(self, z: np.ndarray, hx: np.ndarray, H: np.ndarray, R: np.ndarray,
-                   angle_rows: tuple[int, ...] = ()) -> tuple[np.ndarray, np.ndarray]:
-        """r = z - h(x) (angles wrapped) and S = H P Hᵀ + R."""
+                   angle_rows: tuple[int, ...] = ()) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """r = z - h(x) (angles wrapped), S = H P Hᵀ + R, and P Hᵀ for fuse()."""
         r = z - hx
         for i in angle_rows:
             r[i] = math.remainder(r[i], math.tau)
-        # S = H P H' + R
-        S = H @ self.P @ H.T + R
-        return r, S
-
-    def fuse(self, r: np.ndarray, S: np.ndarray, H: np.ndarray, R: np.ndarray) -> None:
-        """x = x + K r, P = (I - K H) P (I - K H)ᵀ + K R Kᵀ (Joseph form)."""
         PHT = self.P @ H.T
+        # S = H P H' + R
+        S = H @ PHT + R
+        return r, S, PHT
+
+    def fuse(self, r: np.ndarray, S: np.ndarray, H: np.ndarray, R: np.ndarray, PHT: np.ndarray) -> None:
+        """x = x + K r, P = (I - K H) P (I - K H)ᵀ + K R Kᵀ (Joseph form). PHT = P Hᵀ.
+
+        R must be diagonal (every sensor's noise is modelled so): K R Kᵀ is computed as (K diag(R)) Kᵀ.
+        """
         # K = P H' S^-1
-        K = np.linalg.solve(S, PHT.T).T
+        K = PHT @ np.linalg.inv(S)
         self.x += K @ r
         self.x[TH] = math.remainder(self.x[TH], math.tau)
         I_KH = self._I - K @ H
-        self.P = I_KH @ self.P @ I_KH.T + K @ R @ K.T
+        self.P = I_KH @ self.P @ I_KH.T + (K * np.diagonal(R)) @ K.T     # R is diagonal
 
 
 # Measurement models: (h(x), H) for each sensor.

@@ -28,6 +28,8 @@ G = 9.80665
 UNKNOWN_U16 = 65535
 WANTED = {mavlink.MAVLINK_MSG_ID_GPS_RAW_INT, mavlink.MAVLINK_MSG_ID_RAW_IMU, mavlink.MAVLINK_MSG_ID_ATTITUDE}
 V1, V2 = 0xFE, 0xFD
+T_MIN_US, T_MAX_US = 946_684_800_000_000, 4_102_444_800_000_000    # a tlog prefix is unix time: 2000..2100
+DAY_US = 86_400_000_000
 
 
 def to_sample(msg) -> tuple[Sample | None, str | None]:
@@ -91,19 +93,14 @@ class TlogReader:
     def _frames(self, buf) -> Iterator:
         size, pos, names = self.size, 0, mavlink.mavlink_map
         decode, count, skip = self.mav.decode, self.messages, self.skipped
+        last_t = None
         while pos + 8 < size:
             stx = buf[pos + 8]
-            if stx == V2 and pos + 18 <= size:
-                length = 12 + buf[pos + 9] + (13 if buf[pos + 10] & 1 else 0)
-                msgid = buf[pos + 15] | buf[pos + 16] << 8 | buf[pos + 17] << 16
-                sysid = buf[pos + 13]
-            elif stx == V1 and pos + 14 <= size:
-                length = 8 + buf[pos + 9]
-                msgid, sysid = buf[pos + 13], buf[pos + 11]
-            elif stx in (V1, V2):
-                skip["truncated"] += 1
-                break
-            else:   # not a frame here: count garbage and resynchronise on the next start byte
+            t = int.from_bytes(buf[pos:pos + 8], "big")
+            # a frame starts with a start byte after a plausible time prefix; anything else is
+            # garbage (or a false start byte inside garbage): resynchronise on the next start byte
+            if stx not in (V1, V2) or not (T_MIN_US <= t <= T_MAX_US and (last_t is None or
+                                                                       abs(t - last_t) < DAY_US)):
                 nxt = min((i for i in (buf.find(b"\xfd", pos + 9), buf.find(b"\xfe", pos + 9)) if i >= 0),
                           default=-1)
                 skip["garbage_bytes"] += (nxt - 8 - pos) if nxt >= 0 else size - pos
@@ -111,27 +108,44 @@ class TlogReader:
                     break
                 pos = nxt - 8
                 continue
+            if stx == V2 and pos + 18 <= size:
+                length = 12 + buf[pos + 9] + (13 if buf[pos + 10] & 1 else 0)
+                msgid = buf[pos + 15] | buf[pos + 16] << 8 | buf[pos + 17] << 16
+                sysid = buf[pos + 13]
+            elif stx == V1 and pos + 14 <= size:
+                length = 8 + buf[pos + 9]
+                msgid, sysid = buf[pos + 13], buf[pos + 11]
+            else:
+                skip["truncated"] += 1
+                break
             end = pos + 8 + length
             if end > size:
                 skip["truncated"] += 1
                 break
             self.position = end
-            if msgid not in WANTED:
-                kind = names.get(msgid)
-                count[kind.msgname if kind else f"UNKNOWN_{msgid}"] += 1
+            kind = names.get(msgid)
+            # a frame guard does not use is only counted, not decoded, when it is plausible: a known
+            # type and the next frame starting right after it; anything else is checked by its CRC
+            plausible = kind is not None and (end == size or end + 8 < size and buf[end + 8] in (V1, V2))
+            if msgid not in WANTED and plausible:
+                count[kind.msgname] += 1
+                last_t = t
                 pos = end
                 continue
             try:
                 msg = decode(bytearray(buf[pos + 8:end]))
             except mavlink.MAVError:
                 skip["bad_crc"] += 1
-                pos += 1        # a false start byte: look for the next one
+                pos += 1        # perhaps a false start byte: look for the next one
                 continue
+            last_t = t
             count[msg.get_type()] += 1
+            if msgid not in WANTED:
+                pos = end
+                continue
             if self.system_id and sysid != self.system_id:
                 skip["other_system"] += 1
             else:
-                t = int.from_bytes(buf[pos:pos + 8], "big")
                 self.first_time_us = self.first_time_us or t
                 self.last_time_us = t
                 yield msg

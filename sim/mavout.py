@@ -55,8 +55,8 @@ class Encoder:
         return self.mav.gps_raw_int_encode(
             t_us, fix_type, int(round(lat_deg * 1e7)), int(round(lon_deg * 1e7)), int(round(alt_m * 1000)),
             100, 150, _u16(speed * 100), _u16(cog * 100) % 36000, 12,
-            alt_ellipsoid=int(round(alt_m * 1000)), h_acc=int(h_acc_m * 1000), v_acc=int(h_acc_m * 1500),
-            vel_acc=int(vel_acc_mps * 1000), hdg_acc=0, yaw=0)
+            alt_ellipsoid=int(round(alt_m * 1000)), h_acc=int(round(h_acc_m * 1000)),
+            v_acc=int(round(h_acc_m * 1500)), vel_acc=int(round(vel_acc_mps * 1000)), hdg_acc=0, yaw=0)
 
     def raw_imu(self, t_us: int, imu: ImuReading):
         acc = [_i16(a / G * 1000.0) for a in imu.acc_frd]          # mG

@@ -1,8 +1,8 @@
 """The simulator's main loop: vehicle, sensors and attacks on one integer-microsecond clock.
 
-Every sensor ticks at an exact multiple of its period from t = 0, so GNSS sample k is taken at
-k / gnss_hz seconds: with GNSS at 10 Hz, an attack starting at 40 s hits GNSS sample 400 first.
-At equal time stamps the IMU sample is sent before the GNSS sample.
+Sample k of every sensor is taken at k / rate seconds from t = 0 (rounded to the microsecond), so
+with GNSS at 10 Hz an attack starting at 40 s hits GNSS sample 400 first. At equal time stamps the
+IMU sample is sent before the GNSS sample.
 """
 
 from __future__ import annotations
@@ -70,36 +70,34 @@ class Simulation:
                            "speed_mps": []}
 
     def ticks(self):
-        """Yield (t_us, [messages]) in time order, advancing the vehicle between ticks."""
+        """Yield (t_us, [messages]) in time order, advancing the vehicle between ticks.
+
+        Sample k of a sensor at f Hz is taken at round(k * 1e6 / f) microseconds; the vehicle is
+        integrated between consecutive sample times in steps of at most PHYSICS_STEP_US.
+        """
         sc, st = self.scenario, self.scenario.start
-        imu_us, gnss_us, hb_us = (period_us(sc.rates.imu_hz), period_us(sc.rates.gnss_hz),
-                                  period_us(sc.rates.heartbeat_hz))
-        tick_us = math.gcd(imu_us, gnss_us, hb_us)
-        substeps = -(-tick_us // PHYSICS_STEP_US)
-        dt = tick_us / substeps / 1e6
+        rates = {"heartbeat": sc.rates.heartbeat_hz, "imu": sc.rates.imu_hz, "gnss": sc.rates.gnss_hz}
+        count = {name: 0 for name, hz in rates.items() if hz > 0}
         end_us = int(round(sc.duration_s * 1e6))
         fed = (0.0, 0.0, 0.0)       # the controller's position: last GNSS fix (east, north) and its time
         enc, veh = self.encoder, self.vehicle
         t_us = 0
         while t_us <= end_us:
-            t_s = t_us / 1e6
-            s = veh.s
-            out = []
-            if t_us % hb_us == 0:
-                out.append(enc.heartbeat())
-            if t_us % imu_us == 0:
-                out.append(enc.raw_imu(t_us, self.sensors.imu(t_s, s)))
-            if t_us % gnss_us == 0:
-                g = self.sensors.gnss(t_s, s)
-                lat, lon, alt = pymap3d.enu2geodetic(g.east_m, g.north_m, 0.0, st.lat_deg, st.lon_deg, st.alt_m)
-                n = sc.noise
-                out.append(enc.gps_raw_int(t_us, lat, lon, alt, g.vel_n_mps, g.vel_e_mps, n.gnss_h_acc_m,
-                                           max(n.gnss_vel_white_mps, 0.01)))
-                fed = (g.east_m, g.north_m, t_s)
-                tlat, tlon, _ = pymap3d.enu2geodetic(s.e, s.n, 0.0, st.lat_deg, st.lon_deg, st.alt_m)
-                for key, value in zip(self.trajectory, (t_us, tlat, tlon, s.e, s.n, s.psi, s.v)):
-                    self.trajectory[key].append(round(value, 9) if isinstance(value, float) else value)
+            t_s, s, out = t_us / 1e6, veh.s, []
+            due = [name for name in count if int(round(count[name] * 1e6 / rates[name])) == t_us]
+            for name in due:        # in the order heartbeat, IMU, GNSS
+                count[name] += 1
+                if name == "heartbeat":
+                    out.append(enc.heartbeat())
+                elif name == "imu":
+                    out.append(enc.raw_imu(t_us, self.sensors.imu(t_s, s)))
+                else:
+                    out.append(self._gnss(t_us, s))
+                    fed = (self.last_gnss[0], self.last_gnss[1], t_s)
             yield t_us, out
+            next_us = min(int(round(count[name] * 1e6 / rates[name])) for name in count)
+            substeps = max(1, -(-(next_us - t_us) // PHYSICS_STEP_US))
+            dt = (next_us - t_us) / substeps / 1e6
             for _ in range(substeps):
                 # dead-reckon the fed fix by the vehicle's own odometry since it arrived
                 age = t_s - fed[2]
@@ -107,7 +105,19 @@ class Simulation:
                 fn = fed[1] + age * s.v * math.sin(s.psi)
                 veh.step(dt, *veh.command(fe, fn))
                 t_s += dt
-            t_us += tick_us
+            t_us = next_us
+
+    def _gnss(self, t_us: int, s):
+        """One GNSS sample (and the truth beside it) as GPS_RAW_INT."""
+        sc, st, n = self.scenario, self.scenario.start, self.scenario.noise
+        g = self.sensors.gnss(t_us / 1e6, s)
+        self.last_gnss = (g.east_m, g.north_m)
+        lat, lon, alt = pymap3d.enu2geodetic(g.east_m, g.north_m, 0.0, st.lat_deg, st.lon_deg, st.alt_m)
+        tlat, tlon, _ = pymap3d.enu2geodetic(s.e, s.n, 0.0, st.lat_deg, st.lon_deg, st.alt_m)
+        for key, value in zip(self.trajectory, (t_us, tlat, tlon, s.e, s.n, s.psi, s.v)):
+            self.trajectory[key].append(round(value, 9) if isinstance(value, float) else value)
+        return self.encoder.gps_raw_int(t_us, lat, lon, alt, g.vel_n_mps, g.vel_e_mps, n.gnss_h_acc_m,
+                                        max(n.gnss_vel_white_mps, 0.01))
 
     def truth(self) -> dict:
         return truth_record(self.scenario, self.seed, self.sensors, self.trajectory)

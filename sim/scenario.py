@@ -39,6 +39,7 @@ class Start:
     lon_deg: float = -86.9212
     alt_m: float = 187.0
     heading_deg: float = 0.0        # compass heading: 0 = north, clockwise
+    year: float = 2026.0            # date of the World Magnetic Model's field (decimal year)
 
 
 @dataclass(frozen=True)
@@ -55,7 +56,7 @@ class Route:
 class Rates:
     imu_hz: float = 50.0
     gnss_hz: float = 10.0
-    heartbeat_hz: float = 1.0
+    heartbeat_hz: float = 1.0       # 0: no heartbeat
 
 
 @dataclass(frozen=True)
@@ -191,14 +192,24 @@ def parse(data: dict, where: str) -> Scenario:
         raise ScenarioError(f"{where}: rates.imu_hz: must be within 10..400 Hz, got {r.imu_hz}")
     if not 1 <= r.gnss_hz <= 20:
         raise ScenarioError(f"{where}: rates.gnss_hz: must be within 1..20 Hz, got {r.gnss_hz}")
-    if not 0 < r.heartbeat_hz <= 10:
-        raise ScenarioError(f"{where}: rates.heartbeat_hz: must be within 0..10 Hz, got {r.heartbeat_hz}")
+    if not 0 <= r.heartbeat_hz <= 10:
+        raise ScenarioError(f"{where}: rates.heartbeat_hz: must be within 0..10 Hz (0: none), got {r.heartbeat_hz}")
     for name, value in scenario.noise.__dict__.items():
         if value < 0:
             raise ScenarioError(f"{where}: noise.{name}: must be >= 0, got {value}")
     for a in scenario.attacks:
         if a.start_s < 0 or a.duration_s <= 0:
             raise ScenarioError(f"{where}: attack: start_s must be >= 0 and duration_s > 0")
+    st, route = scenario.start, scenario.route
+    if not (-90 <= st.lat_deg <= 90 and -180 <= st.lon_deg <= 180):
+        raise ScenarioError(f"{where}: start: latitude must be within -90..90 and longitude -180..180")
+    if not 2025.0 <= st.year <= 2030.0:
+        raise ScenarioError(f"{where}: start.year: the magnetic model covers 2025..2030, got {st.year}")
+    for key in ("lookahead_m", "max_accel_mps2", "max_yaw_rate_radps"):
+        if getattr(route, key) <= 0:
+            raise ScenarioError(f"{where}: route.{key}: must be > 0")
+    if route.speed_mps < 0 or any(len(p) == 3 and p[2] < 0 for p in route.waypoints_m):
+        raise ScenarioError(f"{where}: route: speeds must be >= 0")
     if scenario.duration_s <= 0:
         raise ScenarioError(f"{where}: duration_s: must be > 0")
     return scenario

@@ -11,7 +11,6 @@ Attacks add to the measurement, after the noise: y_alpha(k) = C x(k) + alpha(k) 
 
 from __future__ import annotations
 
-import datetime
 import math
 from dataclasses import dataclass
 
@@ -39,11 +38,9 @@ class ImuReading:
     mag_frd: tuple[float, float, float]      # gauss
 
 
-def earth_field_ned_gauss(lat_deg: float, lon_deg: float, alt_m: float) -> np.ndarray:
-    """The World Magnetic Model's field (north, east, down) in gauss, this year."""
-    now = datetime.date.today()
-    year = now.year + (now.timetuple().tm_yday - 1) / 365.25
-    r = GeoMag().calculate(glat=lat_deg, glon=lon_deg, alt=alt_m / 1000.0, time=year, allow_date_outside_lifespan=True)
+def earth_field_ned_gauss(lat_deg: float, lon_deg: float, alt_m: float, year: float) -> np.ndarray:
+    """The World Magnetic Model's field (north, east, down) in gauss at a decimal year."""
+    r = GeoMag().calculate(glat=lat_deg, glon=lon_deg, alt=alt_m / 1000.0, time=year)
     return np.array([r.x, r.y, r.z]) * 1e-5    # nT -> gauss
 
 
@@ -60,7 +57,7 @@ class Sensors:
         self.accel_bias = bias.normal(0.0, n.accel_bias_mps2, 3)
         self.markov = gnss.normal(0.0, n.gnss_pos_markov_m, 2)      # (east, north)
         st = scenario.start
-        self.field_ned = earth_field_ned_gauss(st.lat_deg, st.lon_deg, st.alt_m)
+        self.field_ned = earth_field_ned_gauss(st.lat_deg, st.lon_deg, st.alt_m, st.year)
         self.frozen: GnssReading | None = None
         self.last_gnss_t: float | None = None
 
