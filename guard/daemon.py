@@ -8,8 +8,8 @@ On the MAVLink link it sends, as an onboard computer (component 191):
 - HEARTBEAT at `link.heartbeat_hz`;
 - STATUSTEXT CRITICAL when an alarm is raised (sensor, axis, estimated offset, GNSS sample), and
   NOTICE when it clears; an alarm stays latched while the sensor is excluded, so it is sent once;
-- NAMED_VALUE_FLOAT "grd_ratio": the largest statistic/threshold ratio since the last send
-  (1.0 = at the threshold), at `link.statistic_hz`.
+- NAMED_VALUE_FLOAT "grd_ratio": the detector's largest statistic/threshold ratio over all
+  channels (1.0 = at the threshold), at `link.statistic_hz`.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from collections import Counter
 from .config import Config
 from .core import Monitor
 from .errors import SourceError
-from .events import Alarm, Cleared, Notice, Tested
+from .events import Alarm, Cleared, Notice
 from .link import MavlinkLink
 from .mcaplog import McapLog
 from .sdnotify import Notifier
@@ -44,7 +44,7 @@ class Daemon:
         self.connect = connect or cfg.link.connect
         self.mcap_path = cfg.log.mcap if mcap is None else mcap
         self.out = out                      # where operator lines go (the terminal)
-        self.monitor = Monitor(cfg.monitor)
+        self.monitor = Monitor(cfg.monitor, record_tests=bool(self.mcap_path))
         self.samples = 0
         self._log_errors = 0
         self.notifier = Notifier()
@@ -101,7 +101,7 @@ class Daemon:
         while not self.should_exit:
             self.notifier.watchdog()
             if self.link is not None:
-                self.link.tick()
+                self.link.tick(self.monitor.detector.ratio)
             sample = self.source.poll(POLL_S)
             if sample is None:
                 if not silent and time.monotonic() - last_data > self.cfg.link.link_timeout_s:
@@ -125,10 +125,7 @@ class Daemon:
                 self._log_errors = self.log.errors
                 self._operator("MCAP log lost: still detecting")
         for e in events:
-            if isinstance(e, Tested):
-                if self.link is not None:
-                    self.link.note_ratio(max(g / h for g, h in zip(e.statistic, e.threshold)))
-            elif isinstance(e, Alarm):
+            if isinstance(e, Alarm):
                 self.alarms += 1
                 text = alarm_text(e)
                 self.out(f"guard: {text} (t={e.t_us / 1e6:.2f} s, statistic {e.statistic:.1f} > {e.threshold:.1f})")

@@ -119,6 +119,11 @@ class PageCusum:
                 chans[i] = _Page()      # the test restarts after an alarm
         return tuple(stat), (h,) * len(stat), alarms
 
+    def ratio(self) -> float:
+        """The largest statistic / threshold over every channel now (1.0 = at the threshold)."""
+        return max((max(c.gp, c.gn) / self.h.get(s, math.inf) for s, chans in self.state.items() for c in chans),
+                   default=0.0)
+
     def reset(self) -> None:
         self.state.clear()
         self.h.clear()
@@ -171,6 +176,12 @@ class PaperCusum:
                 alarms.append((i, ri))
                 chans[i] = _Band()      # restart: S = 0, a new band from the next samples
         return tuple(stat), tuple(thr), alarms
+
+    def ratio(self) -> float:
+        """The largest S / tau over every channel past its warm-up (1.0 = at the threshold)."""
+        n0, kappa = self.cfg.paper_warmup, self.cfg.paper_kappa
+        return max((c.S / (c.n * c.mean + kappa * c.std * math.sqrt(c.n)) for chans in self.state.values()
+                    for c in chans if c.n > n0 and c.mean > 0), default=0.0)
 
     def reset(self) -> None:
         self.state.clear()

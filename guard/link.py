@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 import os
 import time
-from collections import Counter
+from collections import Counter, deque
 
 os.environ.setdefault("MAVLINK20", "1")     # before pymavlink is imported, or frames are MAVLink 1
 
@@ -24,7 +24,7 @@ from .mavlink import to_sample                 # noqa: E402
 log = logging.getLogger(__name__)
 
 COMPONENT_ID = mavlink.MAV_COMP_ID_ONBOARD_COMPUTER     # 191
-WANTED = ["GPS_RAW_INT", "RAW_IMU", "ATTITUDE"]
+WANTED = {"GPS_RAW_INT", "RAW_IMU", "ATTITUDE"}
 STATUSTEXT_PER_S = 4                                    # rate limit of what we send
 
 
@@ -64,43 +64,59 @@ class MavlinkLink:
         self.t0 = time.monotonic()
         self._next_heartbeat = 0.0
         self._next_stat = 0.0
-        self._ratio = 0.0
         self._sent: list[float] = []
+        self._pending: deque = deque()
 
     def poll(self, timeout: float):
-        """The next sample from the autopilot, or None after `timeout` seconds without one."""
+        """The next sample from the autopilot, or None after `timeout` seconds without one.
+
+        Reads what the link has and parses it with the link's MAVLink parser (pymavlink's
+        recv_match would also copy every message into its per-system state, which we do not use).
+        """
         deadline = time.monotonic() + timeout
-        while (remaining := deadline - time.monotonic()) > 0:
+        while True:
+            while self._pending:
+                sample = self._take(self._pending.popleft())
+                if sample is not None:
+                    return sample
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return None
             try:
-                msg = self.conn.recv_match(blocking=True, timeout=remaining)
-            except Exception as e:      # a broken frame can surface as many exception types
+                data = self.conn.recv()
+                if not data:
+                    self.conn.select(min(remaining, 0.05))
+                    continue
+                self._pending.extend(self.conn.mav.parse_buffer(data) or ())
+            except mavlink.MAVError as e:     # with robust parsing this is rare: a frame it cannot split
                 self.skipped["bad_frame"] += 1
                 log.debug("receive error: %s", e)
-                continue
-            if msg is None:
-                return None
-            name = msg.get_type()
-            if name == "BAD_DATA":
-                reason = getattr(msg, "reason", "")
-                self.skipped["bad_signature" if "signature" in reason.lower() else "bad_frame"] += 1
-                continue
-            if msg.get_srcComponent() == COMPONENT_ID and msg.get_srcSystem() == (self.system_id or 1):
-                continue        # our own, echoed back
-            if self.system_id and msg.get_srcSystem() != self.system_id:
-                self.skipped["other_system"] += 1
-                continue
-            if name not in WANTED:
-                continue
-            self.messages[name] += 1
-            sample, reason = to_sample(msg)
-            if sample is not None:
-                return sample
-            if reason:
-                self.skipped[reason] += 1
-        return None
+            except OSError as e:
+                log.debug("receive error: %s", e)
+                time.sleep(min(remaining, 0.05))
 
-    def tick(self) -> None:
-        """Heartbeat and the statistic, when due."""
+    def _take(self, msg):
+        """A parsed message to a sample, or None (counted when skipped)."""
+        name = msg.get_type()
+        if name == "BAD_DATA":
+            reason = getattr(msg, "reason", "")
+            self.skipped["bad_signature" if "signature" in reason.lower() else "bad_frame"] += 1
+            return None
+        if msg.get_srcComponent() == COMPONENT_ID and msg.get_srcSystem() == (self.system_id or 1):
+            return None         # our own, echoed back
+        if self.system_id and msg.get_srcSystem() != self.system_id:
+            self.skipped["other_system"] += 1
+            return None
+        if name not in WANTED:
+            return None
+        self.messages[name] += 1
+        sample, reason = to_sample(msg)
+        if reason:
+            self.skipped[reason] += 1
+        return sample
+
+    def tick(self, ratio=lambda: 0.0) -> None:
+        """Heartbeat and the statistic (`ratio()`, called only when due), when due."""
         now = time.monotonic()
         if now >= self._next_heartbeat:
             self._next_heartbeat = now + 1.0 / self.cfg.heartbeat_hz
@@ -108,12 +124,9 @@ class MavlinkLink:
                                                   0, 0, mavlink.MAV_STATE_ACTIVE))
         if self.cfg.statistic_hz > 0 and now >= self._next_stat:
             self._next_stat = now + 1.0 / self.cfg.statistic_hz
-            ratio, self._ratio = self._ratio, 0.0
+            value = float(ratio())
             ms = int((now - self.t0) * 1000) & 0xFFFFFFFF
-            self._send(lambda m: m.named_value_float_send(ms, b"grd_ratio", ratio))
-
-    def note_ratio(self, ratio: float) -> None:
-        self._ratio = max(self._ratio, ratio)
+            self._send(lambda m: m.named_value_float_send(ms, b"grd_ratio", value))
 
     def statustext(self, text: str, critical: bool) -> None:
         now = time.monotonic()
