@@ -115,7 +115,7 @@ def parser() -> argparse.ArgumentParser:
     r = sub.add_parser("replay", help="run a tlog through the detector offline")
     r.add_argument("file", help="a .tlog file")
     r.add_argument("--config", help="TOML config file")
-    r.add_argument("--detector", choices=["cusum", "paper"], help="override detector.name")
+    r.add_argument("--detector", choices=["cusum", "paper", "gate", "chi2"], help="override detector.name")
     r.add_argument("--report", help="write the JSON report here ('-' for stdout)")
     r.add_argument("--plot", help="write the three-panel figure here (.png)")
     r.add_argument("--mcap", help="write an MCAP log here")

@@ -81,6 +81,11 @@ def _typed(cls, table: dict, where: str):
             if not math.isfinite(value) or value < 0:
                 raise ConfigError(f"{name}: must be a finite number >= 0, got {value!r}")
             value = type(default)(value)
+        elif isinstance(default, tuple):
+            if not isinstance(value, list) or not value or any(
+                    isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < 100 for v in value):
+                raise ConfigError(f"{name}: expected a list of numbers in (0, 100), got {value!r}")
+            value = tuple(float(v) for v in value)
         elif isinstance(default, str) and not isinstance(value, str):
             raise ConfigError(f"{name}: expected a string, got {value!r}")
         values[key] = value
@@ -93,8 +98,8 @@ def _check(cfg: Config, where: str) -> None:
     problems = {
         "detector.name": (det.name not in DETECTORS, f"must be one of {', '.join(DETECTORS)}"),
         "detector.false_alarm_interval_h": (det.false_alarm_interval_h <= 0, "must be > 0"),
-        "detector.shift_sigma": (det.shift_sigma <= 0, "must be > 0"),
         "detector.paper_warmup": (det.paper_warmup < 2, "must be >= 2"),
+        "detector.gate_sigma": (det.gate_sigma <= 0, "must be > 0"),
         "link.system_id": (link.system_id > 255, "must be 0..255"),
         "link.heartbeat_hz": (link.heartbeat_hz <= 0, "must be > 0"),
         "can.gnss_node_id": (cfg.can.gnss_node_id > 127, "must be 0..127"),

@@ -44,6 +44,7 @@ class MonitorConfig:
     declination_deg: float | None = None    # None: from the World Magnetic Model at the first fix
     max_gap_s: float = 10.0                 # a longer silence, or time running backwards, re-initialises
     imu_fusion_hz: float = 50.0             # a faster IMU is averaged down to this rate before fusion (0: off)
+    freeze_speed_mps: float = 1.0           # a GNSS fix repeated to the last digit while faster than this is frozen
 
 
 class Monitor:
@@ -82,6 +83,7 @@ class Monitor:
         self._imu_sum = [0.0] * 5                   # ax, ay, yaw rate, m_x, m_y since the last fusion
         self._imu_n = self._mag_n = 0
         self._imu_t: int | None = None              # time of the last fused IMU measurement
+        self._last_fix: tuple | None = None         # (lat, lon, v_n, v_e) of the previous fix
 
     # -- the step -----------------------------------------------------------------------------
     def step(self, sample) -> list[Event]:
@@ -124,6 +126,7 @@ class Monitor:
             return events + self._initialise(fix)
         self._advance(fix.t_us)
         ekf = self.ekf
+        events += self._freeze(fix)
         e, n = self.frame.to_en(fix.lat_deg, fix.lon_deg)
         events += self._measure("gnss_pos", fix.t_us, np.array([e, n]), ekf.x[:2].copy(), H_POS, self.R_pos)
         if self.cfg.filter.use_gnss_velocity and fix.vel_n_mps is not None:
@@ -134,6 +137,18 @@ class Monitor:
         events.append(Estimate(fix.t_us, self.gnss_index, float(x[0]), float(x[1]), float(x[TH]), x.copy(),
                                np.diagonal(ekf.P).copy(), (f.lat0, f.lon0, f.alt0)))
         return events
+
+    def _freeze(self, fix: GnssFix) -> list[Event]:
+        """A receiver's noise never repeats a fix to the last digit while the vehicle moves: a repeat
+        at speed is a frozen (replayed or stuck) GNSS. Both its position and velocity are excluded."""
+        key = (fix.lat_deg, fix.lon_deg, fix.vel_n_mps, fix.vel_e_mps)
+        repeated, self._last_fix = key == self._last_fix, key
+        speed = math.hypot(self.ekf.x[VX], self.ekf.x[VY])
+        if not repeated or speed < self.cfg.freeze_speed_mps or "gnss_pos" in self.excluded:
+            return []
+        self.excluded["gnss_pos"] = self.excluded["gnss_vel"] = fix.t_us
+        return [Alarm(fix.t_us, self.gnss_index, "gnss_pos", "frozen", speed, self.cfg.freeze_speed_mps, 0.0,
+                      "freeze")]
 
     def _initialise(self, fix: GnssFix) -> list[Event]:
         self.frame = LocalFrame(fix.lat_deg, fix.lon_deg, fix.alt_m)
@@ -180,7 +195,9 @@ class Monitor:
             self.skipped["imu_no_magnetometer"] += 1
             z, H, R, blocks = np.array([rate, ax, ay]), H_IMU_NO_MAG, self.R_imu_no_mag, IMU_BLOCKS_NO_MAG
         else:
-            z, H, R, blocks = np.array([heading, rate, ax, ay]), H_IMU, self.R_imu, IMU_BLOCKS
+            z, H, R, blocks = np.array([heading, rate, ax, ay]), H_IMU, self.R_imu.copy(), IMU_BLOCKS
+            # a heading sampled up to heading_lag_s late is off by up to yaw rate * lag
+            R[0, 0] += (rate * self.cfg.filter.heading_lag_s) ** 2
         r, S, PHT = self.ekf.innovation(z, H @ self.ekf.x, H, R, angle_rows=(0,) if heading is not None else ())
         # one stacked update, tested sensor by sensor
         events: list[Event] = []

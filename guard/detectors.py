@@ -13,9 +13,13 @@ n the samples since the (re)start, m and s the mean and standard deviation of |r
 10 of them: the centre is the first 10 samples' sum scaled by n/10, the half-width the spread of a
 sum of n such samples. No decision is taken in those first 10 samples (the paper's blind start).
 
+`gate` and `chi2` are the baselines a detector must beat: the autopilots' 5-sigma innovation gate
+with a persistence rule, and a memoryless chi-square test of each sensor's innovation.
+
 `cusum`: Page's two-sided CUSUM on the normalised innovation z = r / sqrt(S_ii),
     g+(k) = max(0, g+(k-1) + z(k) - k_ref),   g-(k) = max(0, g-(k-1) - z(k) - k_ref),
-alarm when max(g+, g-) > h. k_ref = delta/2 for a design shift of delta sigmas; h is set from a
+alarm when max(g+, g-) > h. k_ref = delta/2 for a design shift of delta sigmas, one CUSUM per
+design shift in a bank (default 1 and 4 sigmas: unknown attack sizes); h is set from a
 target mean time between false alarms (all channels together) with Siegmund's approximation of
 the in-control average run length, ARL0(h) = (exp(2 k (h + 1.166)) - 2 k (h + 1.166) - 1) / (2 k^2).
 At k = 1.5 the approximation overstates the exact ARL0 (Page's integral equation, checked in the
@@ -26,6 +30,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from statistics import NormalDist
 
 import numpy as np
 
@@ -34,9 +39,11 @@ import numpy as np
 class DetectorConfig:
     name: str = "cusum"                 # "cusum" | "paper"
     false_alarm_interval_h: float = 1000.0   # cusum: target mean time between false alarms, all channels
-    shift_sigma: float = 3.0            # cusum: design shift delta (in sigmas); k_ref = delta / 2
+    shift_sigma: tuple[float, ...] = (1.0, 4.0)   # cusum: design shifts delta (sigmas), one CUSUM each
     paper_kappa: float = 3.0            # paper: half-width of the band, in standard deviations of a sum
     paper_warmup: int = 10              # paper: samples that set the band after each (re)start
+    gate_sigma: float = 5.0             # gate: an innovation beyond this many sigmas is rejected ...
+    gate_persist_s: float = 1.0         # gate: ... and rejection for this long raises the alarm
 
 
 def siegmund_arl(h: float, k: float) -> float:
@@ -57,31 +64,40 @@ def threshold_for_arl(arl0: float, k: float) -> float:
 
 
 class _Page:
-    """One channel of a two-sided Page CUSUM."""
+    """One channel of a bank of two-sided Page CUSUMs, one per reference value k."""
 
     __slots__ = ("gp", "gn", "sum_p", "sum_n", "cnt_p", "cnt_n")
 
-    def __init__(self):
-        self.gp = self.gn = self.sum_p = self.sum_n = 0.0   # sums of r while g > 0: the shift estimate
-        self.cnt_p = self.cnt_n = 0
+    def __init__(self, n: int):
+        self.gp, self.gn = [0.0] * n, [0.0] * n
+        self.sum_p, self.sum_n = [0.0] * n, [0.0] * n      # sums of r while g > 0: the shift estimate
+        self.cnt_p, self.cnt_n = [0] * n, [0] * n
 
 
 class PageCusum:
+    """A bank of Page CUSUMs per channel, one per design shift in `shift_sigma` (k = shift / 2).
+
+    A small shift accumulates in the small-k member, a large step fires the large-k member at once:
+    together they cover an attack of unknown size. All members of all channels share the budget.
+    The statistic reported for a channel is that of the member closest to its threshold.
+    """
+
     name = "cusum"
 
     def __init__(self, cfg: DetectorConfig, n_channels: int):
         self.cfg = cfg
-        self.k = cfg.shift_sigma / 2.0
-        self.n_tests = 2 * n_channels       # two sides per channel share the false-alarm budget
+        self.ks = [d / 2.0 for d in cfg.shift_sigma]
+        self.n_tests = 2 * n_channels * len(self.ks)    # two sides per channel and member share the budget
         self.state: dict[str, list[_Page]] = {}
-        self.h: dict[str, float] = {}
+        self.h: dict[str, list[float]] = {}
         self._first_t: dict[str, int] = {}
 
-    def threshold(self, rate_hz: float) -> float:
-        """h for one side of one channel sampled at rate_hz."""
-        return threshold_for_arl(self.cfg.false_alarm_interval_h * 3600.0 * rate_hz * self.n_tests, self.k)
+    def threshold(self, rate_hz: float) -> list[float]:
+        """h of each member, for one side of one channel sampled at rate_hz."""
+        arl0 = self.cfg.false_alarm_interval_h * 3600.0 * rate_hz * self.n_tests
+        return [threshold_for_arl(arl0, k) for k in self.ks]
 
-    def _h(self, sensor: str, t_us: int) -> float:
+    def _h(self, sensor: str, t_us: int) -> list[float]:
         """h from the sensor's rate, known at its second sample (a 50 Hz guess before that)."""
         h = self.h.get(sensor)
         if h is None:
@@ -93,36 +109,43 @@ class PageCusum:
 
     def test(self, sensor: str, t_us: int, r: np.ndarray, S: np.ndarray):
         chans = self.state.get(sensor)
+        nk = len(self.ks)
         if chans is None:
-            chans = self.state[sensor] = [_Page() for _ in range(len(r))]
-        h, k = self._h(sensor, t_us), self.k
-        stat, alarms = [], []
+            chans = self.state[sensor] = [_Page(nk) for _ in range(len(r))]
+        hs = self._h(sensor, t_us)
+        stat, thr, alarms = [], [], []
         for i, (ri, si) in enumerate(zip(r.tolist(), np.diagonal(S).tolist())):
             c = chans[i]
             z = ri / math.sqrt(si)
-            # g+ = max(0, g+ + z - k),  g- = max(0, g- - z - k)
-            c.gp = c.gp + z - k
-            if c.gp > 0.0:
-                c.sum_p += ri; c.cnt_p += 1
-            else:
-                c.gp = c.sum_p = 0.0; c.cnt_p = 0
-            c.gn = c.gn - z - k
-            if c.gn > 0.0:
-                c.sum_n += ri; c.cnt_n += 1
-            else:
-                c.gn = c.sum_n = 0.0; c.cnt_n = 0
-            g = c.gp if c.gp > c.gn else c.gn
-            stat.append(g)
-            if g > h:
-                offset = c.sum_p / c.cnt_p if c.gp >= c.gn else c.sum_n / c.cnt_n
-                alarms.append((i, offset))
-                chans[i] = _Page()      # the test restarts after an alarm
-        return tuple(stat), (h,) * len(stat), alarms
+            best, best_j = -1.0, 0
+            for j, k in enumerate(self.ks):
+                # g+ = max(0, g+ + z - k),  g- = max(0, g- - z - k)
+                gp = c.gp[j] + z - k
+                if gp > 0.0:
+                    c.gp[j] = gp; c.sum_p[j] += ri; c.cnt_p[j] += 1
+                else:
+                    c.gp[j] = c.sum_p[j] = 0.0; c.cnt_p[j] = 0
+                gn = c.gn[j] - z - k
+                if gn > 0.0:
+                    c.gn[j] = gn; c.sum_n[j] += ri; c.cnt_n[j] += 1
+                else:
+                    c.gn[j] = c.sum_n[j] = 0.0; c.cnt_n[j] = 0
+                ratio = max(c.gp[j], c.gn[j]) / hs[j]
+                if ratio > best:
+                    best, best_j = ratio, j
+            j = best_j
+            stat.append(max(c.gp[j], c.gn[j]))
+            thr.append(hs[j])
+            if best > 1.0:
+                up = c.gp[j] >= c.gn[j]
+                alarms.append((i, c.sum_p[j] / c.cnt_p[j] if up else c.sum_n[j] / c.cnt_n[j]))
+                chans[i] = _Page(nk)      # the test restarts after an alarm
+        return tuple(stat), tuple(thr), alarms
 
     def ratio(self) -> float:
-        """The largest statistic / threshold over every channel now (1.0 = at the threshold)."""
-        return max((max(c.gp, c.gn) / self.h.get(s, math.inf) for s, chans in self.state.items() for c in chans),
-                   default=0.0)
+        """The largest statistic / threshold over every channel and member now (1.0 = at the threshold)."""
+        return max((max(c.gp[j], c.gn[j]) / self.h[s][j] for s, chans in self.state.items() if s in self.h
+                    for c in chans for j in range(len(self.ks))), default=0.0)
 
     def reset(self) -> None:
         self.state.clear()
@@ -187,7 +210,92 @@ class PaperCusum:
         self.state.clear()
 
 
-DETECTORS = {"cusum": PageCusum, "paper": PaperCusum}
+class Gate:
+    """The autopilots' rule: reject an innovation beyond `gate_sigma`; alarm when a channel has been
+    rejected on every sample for `gate_persist_s` (ArduPilot and PX4 then reset onto the GNSS)."""
+
+    name = "gate"
+
+    def __init__(self, cfg: DetectorConfig, n_channels: int):
+        self.cfg = cfg
+        self.since: dict[tuple[str, int], int] = {}     # (sensor, channel) -> first rejected sample time
+
+    def test(self, sensor: str, t_us: int, r: np.ndarray, S: np.ndarray):
+        g, stat, alarms = self.cfg.gate_sigma, [], []
+        persist = self.cfg.gate_persist_s * 1e6
+        for i, (ri, si) in enumerate(zip(r.tolist(), np.diagonal(S).tolist())):
+            z = abs(ri) / math.sqrt(si)
+            key = (sensor, i)
+            if z <= g:
+                self.since.pop(key, None)
+                stat.append(0.0)
+                continue
+            t0 = self.since.setdefault(key, t_us)
+            stat.append((t_us - t0) / 1e6)
+            if t_us - t0 >= persist:
+                alarms.append((i, ri))
+                del self.since[key]
+        return tuple(stat), (self.cfg.gate_persist_s,) * len(stat), alarms
+
+    def ratio(self) -> float:
+        return 0.0
+
+    def reset(self) -> None:
+        self.since.clear()
+
+
+class ChiSquare:
+    """A memoryless test per sensor: NIS = rᵀ S⁻¹ r against the chi-square quantile whose tail
+    probability gives the target mean time between false alarms. The alarm names the channel with
+    the largest normalised innovation."""
+
+    name = "chi2"
+
+    def __init__(self, cfg: DetectorConfig, n_channels: int):
+        self.cfg = cfg
+        self.n_tests = n_channels
+        self.h: dict[str, float] = {}
+        self._first_t: dict[str, int] = {}
+
+    def _h(self, sensor: str, t_us: int, m: int) -> float:
+        h = self.h.get(sensor)
+        if h is None:
+            t0 = self._first_t.setdefault(sensor, t_us)
+            rate = 50.0 if t_us <= t0 else min(1000.0, 1e6 / (t_us - t0))
+            p = 1.0 / (self.cfg.false_alarm_interval_h * 3600.0 * rate * self.n_tests)
+            h = chi2_quantile(p, m)
+            if t_us > t0:
+                self.h[sensor] = h
+        return h
+
+    def test(self, sensor: str, t_us: int, r: np.ndarray, S: np.ndarray):
+        h = self._h(sensor, t_us, len(r))
+        nis = float(r @ np.linalg.solve(S, r))
+        alarms = []
+        if nis > h:
+            z = np.abs(r) / np.sqrt(np.diagonal(S))
+            i = int(np.argmax(z))
+            alarms.append((i, float(r[i])))
+        return (nis,) * len(r), (h,) * len(r), alarms
+
+    def ratio(self) -> float:
+        return 0.0
+
+    def reset(self) -> None:
+        self.h.clear()
+        self._first_t.clear()
+
+
+def chi2_quantile(p: float, dof: int) -> float:
+    """x with P(chi2_dof > x) = p, for dof 1 (from the normal quantile) and 2 (closed form)."""
+    if dof == 1:
+        return NormalDist().inv_cdf(1.0 - p / 2.0) ** 2
+    if dof == 2:
+        return -2.0 * math.log(p)
+    raise ValueError("chi2_quantile: dof must be 1 or 2")
+
+
+DETECTORS = {"cusum": PageCusum, "paper": PaperCusum, "gate": Gate, "chi2": ChiSquare}
 
 
 def make_detector(cfg: DetectorConfig, n_channels: int):

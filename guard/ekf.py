@@ -45,9 +45,10 @@ X, Y, TH, VX, VY, W, AX, AY, BW, BAX, BAY = range(N_STATES)
 class FilterConfig:
     """Noise model of the filter (1-sigma). Process noise is given per second (random-walk rates)."""
 
-    gnss_pos_sigma_m: float = 0.5
-    gnss_vel_sigma_mps: float = 0.1
+    gnss_pos_sigma_m: float = 0.35
+    gnss_vel_sigma_mps: float = 0.06
     heading_sigma_rad: float = 0.05
+    heading_lag_s: float = 0.1        # timing uncertainty of the magnetometer: adds (yaw rate * lag)^2 to R
     gyro_sigma_radps: float = 0.01
     accel_sigma_mps2: float = 0.15
     q_pos_m: float = 0.1              # position random walk, m/sqrt(s): covers correlated GNSS error

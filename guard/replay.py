@@ -99,7 +99,7 @@ def replay(path: str, cfg: Config | None = None, *, listeners=(), progress: bool
         "messages": dict(sorted(reader.messages.items())),
         "skipped": dict(sorted(skipped.items())),
         "detector": cfg.monitor.detector.name,
-        "detector_config": asdict(cfg.monitor.detector),
+        "detector_config": json.loads(json.dumps(asdict(cfg.monitor.detector))),   # tuples as lists
         "gnss_samples": monitor.gnss_index + 1,
         "alarms": alarms,
         "cleared": cleared,

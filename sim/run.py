@@ -116,8 +116,10 @@ class Simulation:
         tlat, tlon, _ = pymap3d.enu2geodetic(s.e, s.n, 0.0, st.lat_deg, st.lon_deg, st.alt_m)
         for key, value in zip(self.trajectory, (t_us, tlat, tlon, s.e, s.n, s.psi, s.v)):
             self.trajectory[key].append(round(value, 9) if isinstance(value, float) else value)
-        return self.encoder.gps_raw_int(t_us, lat, lon, alt, g.vel_n_mps, g.vel_e_mps, n.gnss_h_acc_m,
-                                        max(n.gnss_vel_white_mps, 0.01))
+        lost = any(a.kind == "dropout" and a.active(t_us / 1e6) for a in sc.attacks)
+        return self.encoder.gps_raw_int(t_us, 0.0 if lost else lat, 0.0 if lost else lon, alt, g.vel_n_mps,
+                                        g.vel_e_mps, n.gnss_h_acc_m, max(n.gnss_vel_white_mps, 0.01),
+                                        fix_type=1 if lost else 3)
 
     def truth(self) -> dict:
         return truth_record(self.scenario, self.seed, self.sensors, self.trajectory)

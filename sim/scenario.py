@@ -19,6 +19,7 @@ ATTACK_KINDS = {
     "bias": "a constant offset on an IMU channel (gyro rad/s, accel m/s^2)",
     "freeze": "GNSS position and velocity stop updating while the vehicle moves (magnitude unused)",
     "spoof": "coordinated GNSS spoof: position drifts as magnitude*(t-s)^2/2 and velocity as magnitude*(t-s)",
+    "dropout": "a fault, not an attack: the receiver reports no fix for duration_s (magnitude unused)",
 }
 SENSOR_CHANNELS = {
     "gnss_pos": ("north", "east"),
@@ -158,7 +159,7 @@ def _attack(data: dict, where: str) -> Attack:
     if a.channel not in SENSOR_CHANNELS[a.sensor]:
         raise ScenarioError(f"{where}.channel: {a.channel!r} is not a channel of {a.sensor}")
     gnss = a.sensor.startswith("gnss")
-    if a.kind in ("freeze", "spoof") and not gnss or a.kind == "bias" and gnss:
+    if a.kind in ("freeze", "spoof", "dropout") and not gnss or a.kind == "bias" and gnss:
         raise ScenarioError(f"{where}.kind: {a.kind!r} does not apply to sensor {a.sensor!r}")
     return Attack(**{**a.__dict__, "magnitude": float(magnitude)})
 

@@ -88,6 +88,9 @@ def test_siegmund_against_the_integral_equation():
 DT_US = 100_000     # 10 Hz
 
 
+ONE = DetectorConfig(shift_sigma=(3.0,))       # a single CUSUM (k = 1.5), for the textbook checks
+
+
 def feed(det, sensor, rows, S, t0=0):
     """Run the detector over the rows of r; returns (stats, thresholds, alarms per sample)."""
     out = []
@@ -97,7 +100,7 @@ def feed(det, sensor, rows, S, t0=0):
 
 
 def test_page_threshold_follows_rate_and_false_alarm_budget():
-    cfg = DetectorConfig(false_alarm_interval_h=1000.0, shift_sigma=3.0)
+    cfg = DetectorConfig(false_alarm_interval_h=1000.0, shift_sigma=(3.0,))
     det = PageCusum(cfg, n_channels=3)
     (_, thr0, _), (_, thr1, _) = feed(det, "s", np.zeros((2, 3)), np.eye(3))
     # a 50 Hz guess before the rate is known, then 10 Hz; 2 sides x 3 channels share the budget
@@ -113,10 +116,10 @@ def test_page_matches_the_recursion():
     S = np.diag(sig ** 2) + 0.1                      # off-diagonal terms must not matter
     r = rng.normal(0.0, 1.0, (n, m)) * sig
     r[2000:2100, 1] += 1.5 * sig[1]                    # a few alarms
-    det = PageCusum(DetectorConfig(false_alarm_interval_h=0.01, shift_sigma=2.0), m)
+    det = PageCusum(DetectorConfig(false_alarm_interval_h=0.01, shift_sigma=(2.0,)), m)
     # two zero samples first: the rate, hence h, is known; z = 0 leaves the statistics at 0
     res = feed(det, "s", np.vstack([np.zeros((2, m)), r]), S)[2:]
-    h, k = det.h["s"], 1.0
+    h, k = det.h["s"][0], 1.0
     gp, gn = np.zeros(m), np.zeros(m)
     n_alarms = 0
     for i in range(n):
@@ -141,7 +144,7 @@ def test_page_no_false_alarm_on_white_noise():
     The chance of any alarm here is about 0.3 % (seed 11 happens to hold two 4-sigma samples in a row).
     """
     rng = np.random.default_rng(12)
-    det = PageCusum(DetectorConfig(), n_channels=3)
+    det = PageCusum(ONE, n_channels=3)
     res = feed(det, "gnss_pos", rng.standard_normal((100_000, 3)), np.eye(3))
     assert not any(alarms for _, _, alarms in res)
     assert max(max(stat) for stat, _, _ in res) < res[-1][1][0]
@@ -150,7 +153,7 @@ def test_page_no_false_alarm_on_white_noise():
 @pytest.mark.parametrize("sign", [+1.0, -1.0])
 def test_page_large_step_alarms_on_first_sample(sign):
     rng = np.random.default_rng(12)
-    det = PageCusum(DetectorConfig(), n_channels=3)
+    det = PageCusum(ONE, n_channels=3)
     r = rng.standard_normal((300, 3))
     r[200:, 1] += sign * 10.0
     res = feed(det, "s", r, np.eye(3))
@@ -161,15 +164,15 @@ def test_page_large_step_alarms_on_first_sample(sign):
     assert offset == pytest.approx(sign * 10.0, abs=1.5)
     # the test restarts at 0 after an alarm: the next statistic is max(0, |z| - k) of that sample alone
     stat_next = res[201][0][1]
-    assert stat_next == pytest.approx(max(0.0, abs(r[201, 1]) - det.k))
+    assert stat_next == pytest.approx(max(0.0, abs(r[201, 1]) - det.ks[0]))
 
 
 def test_page_statistic_restarts_at_zero():
-    det = PageCusum(DetectorConfig(), n_channels=1)
+    det = PageCusum(ONE, n_channels=1)
     S = np.eye(1)
     feed(det, "s", [[0.0], [0.0]], S)
     stat, thr, alarms = det.test("s", 2 * DT_US, np.array([20.0]), S)
-    assert alarms and stat[0] == pytest.approx(20.0 - det.k)
+    assert alarms and stat[0] == pytest.approx(20.0 - det.ks[0])
     stat, _, alarms = det.test("s", 3 * DT_US, np.array([0.0]), S)
     assert stat == (0.0,) and not alarms
 
@@ -177,7 +180,7 @@ def test_page_statistic_restarts_at_zero():
 def test_page_delay_for_a_small_step():
     """2 sigma step, k = 1.5: the mean delay is Siegmund's out-of-control ARL (about h / (delta - k))."""
     rng = np.random.default_rng(13)
-    det = PageCusum(DetectorConfig(), n_channels=1)
+    det = PageCusum(ONE, n_channels=1)
     S = np.eye(1)
     delays = []
     for _ in range(400):
@@ -190,10 +193,27 @@ def test_page_delay_for_a_small_step():
         while not det.test("s", i * DT_US, 2.0 + rng.standard_normal(1), S)[2]:
             i += 1
         delays.append(i - change + 1)
-    h, k, delta = det.h["s"], det.k, 2.0
+    h, k, delta = det.h["s"][0], det.ks[0], 2.0
     mean = float(np.mean(delays))
     assert mean == pytest.approx(siegmund_arl1(h, k, delta), rel=0.15)
     assert 0.5 < mean / (h / (delta - k)) < 2.0
+
+
+def test_bank_catches_a_small_shift_that_a_single_large_k_misses():
+    """A persistent 1-sigma shift: the k = 0.5 member accumulates it, a lone k = 2 CUSUM does not;
+    a 10-sigma step still fires the bank on its first sample."""
+    rng = np.random.default_rng(21)
+    r = rng.standard_normal((3000, 1))
+    r[1000:] += 1.0
+    bank = feed(PageCusum(DetectorConfig(shift_sigma=(1.0, 4.0)), 1), "s", r, np.eye(1))
+    lone = feed(PageCusum(DetectorConfig(shift_sigma=(4.0,)), 1), "s", r, np.eye(1))
+    first = next(i for i, (_, _, a) in enumerate(bank) if a)
+    assert 1000 <= first < 1200
+    assert not any(a for _, _, a in lone[:1200])
+    step = rng.standard_normal((300, 1))
+    step[200:] += 10.0
+    res = feed(PageCusum(DetectorConfig(shift_sigma=(1.0, 4.0)), 1), "s", step, np.eye(1))
+    assert next(i for i, (_, _, a) in enumerate(res) if a) == 200
 
 
 # -- the paper's CUSUM ---------------------------------------------------------------------------------
@@ -244,7 +264,7 @@ def test_paper_large_step_alarms_within_three_samples_and_restarts():
 
 def test_reset_clears_every_channel():
     for name in ("cusum", "paper"):
-        det = make_detector(DetectorConfig(name=name), 1)
+        det = make_detector(DetectorConfig(name=name, shift_sigma=(3.0,)), 1)
         feed(det, "s", [[3.0]] * 5, np.eye(1))
         det.reset()
         stat, _, _ = det.test("s", 10 * DT_US, np.array([1.0]), np.eye(1))
