@@ -70,8 +70,9 @@ def _sim(args) -> int:
         from sim.canbus import CanPublisher
         try:
             can = CanPublisher(args.can)
-        except Exception as e:
-            raise GuardError(f"cannot open CAN bus {args.can}: {e}") from None
+        except Exception as e:      # python-can raises many kinds
+            reason = str(e).removeprefix(f"cannot open CAN bus {args.can.split(':', 1)[-1]}: ")
+            raise GuardError(f"cannot open CAN bus {args.can}: {reason}") from None
 
     def show(msg) -> None:
         names = {2: "CRITICAL", 4: "WARNING", 5: "NOTICE", 6: "INFO"}
@@ -83,7 +84,7 @@ def _sim(args) -> int:
     finally:
         if can:
             can.close()
-    where = args.tlog or args.out or args.can
+    where = ", ".join(w for w in (args.tlog, args.out, args.can) if w)
     print(f"sim: scenario {sc.name}, seed {args.seed}, {sc.duration_s:.0f} s -> {where}", file=sys.stderr)
     return 0 if truth else 1
 
@@ -148,6 +149,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(name)s: %(levelname)s: %(message)s", stream=sys.stderr)
+    logging.getLogger("dronecan").setLevel(logging.WARNING)     # its import says which drivers it lacks
     try:
         return args.func(args)
     except GuardError as e:

@@ -8,13 +8,15 @@ On the MAVLink link it sends, as an onboard computer (component 191):
 - HEARTBEAT at `link.heartbeat_hz`;
 - STATUSTEXT CRITICAL when an alarm is raised (sensor, axis, estimated offset, GNSS sample), and
   NOTICE when it clears; an alarm stays latched while the sensor is excluded, so it is sent once;
-- NAMED_VALUE_FLOAT "grd_ratio": the detector's largest statistic/threshold ratio over all
-  channels (1.0 = at the threshold), at `link.statistic_hz`.
+- NAMED_VALUE_FLOAT "grd_ratio": the largest statistic/threshold ratio over all channels since
+  the last send (1.0 = at the threshold; at least 1.0 while an alarm is latched), at
+  `link.statistic_hz`.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import signal
 import time
 from collections import Counter
@@ -31,6 +33,12 @@ log = logging.getLogger(__name__)
 
 UNITS = {"gnss_pos": "m", "gnss_vel": "m/s", "mag": "rad", "gyro": "rad/s", "accel": "m/s2"}
 POLL_S = 0.2            # the loop wakes at least this often (watchdog, heartbeat, link timeout)
+LOG_LOST_REPEAT_S = 60.0    # how often to repeat "MCAP log lost" while it stays lost
+
+
+def say(line: str) -> None:
+    """An operator line on stdout, flushed at once (a pipe or the journal would hold it back)."""
+    print(line, flush=True)
 
 
 def alarm_text(e: Alarm) -> str:
@@ -39,14 +47,17 @@ def alarm_text(e: Alarm) -> str:
 
 
 class Daemon:
-    def __init__(self, cfg: Config, *, connect: str | None = None, mcap: str | None = None, out=print):
+    def __init__(self, cfg: Config, *, connect: str | None = None, mcap: str | None = None, out=say):
         self.cfg = cfg
         self.connect = connect or cfg.link.connect
         self.mcap_path = cfg.log.mcap if mcap is None else mcap
         self.out = out                      # where operator lines go (the terminal)
         self.monitor = Monitor(cfg.monitor, record_tests=bool(self.mcap_path))
         self.samples = 0
+        self.started = False
         self._log_errors = 0
+        self._log_warned = -math.inf
+        self._peak = 0.0        # largest alarm statistic / threshold since the last grd_ratio
         self.notifier = Notifier()
         self.should_exit = False
         self.force_exit = False
@@ -93,6 +104,7 @@ class Daemon:
                                chunk_size=int(c.chunk_kb * 1024),
                                metadata={"config": self.cfg.source_text, "connect": self.connect})
         self.out(f"guard: listening on {self.connect}" + (f", logging to {self.mcap_path}" if self.log else ""))
+        self.started = True
         self.notifier.ready(f"listening on {self.connect}")
 
     def main_loop(self) -> None:
@@ -101,12 +113,12 @@ class Daemon:
         while not self.should_exit:
             self.notifier.watchdog()
             if self.link is not None:
-                self.link.tick(self.monitor.detector.ratio)
+                self.link.tick(self.ratio)
             sample = self.source.poll(POLL_S)
             if sample is None:
                 if not silent and time.monotonic() - last_data > self.cfg.link.link_timeout_s:
                     silent = True
-                    self._operator(f"no GNSS or IMU data for {self.cfg.link.link_timeout_s:.0f} s: waiting")
+                    self._operator(f"no GNSS or IMU data for {self.cfg.link.link_timeout_s:g} s: waiting")
                 continue
             last_data = time.monotonic()
             if silent:
@@ -123,10 +135,13 @@ class Daemon:
             self.log.on_events(events)
             if self.log.errors > self._log_errors:      # the sink logged why; tell the operator too
                 self._log_errors = self.log.errors
-                self._operator("MCAP log lost: still detecting")
+                if time.monotonic() - self._log_warned >= LOG_LOST_REPEAT_S:
+                    self._log_warned = time.monotonic()
+                    self._operator("MCAP log lost: still detecting")
         for e in events:
             if isinstance(e, Alarm):
                 self.alarms += 1
+                self._peak = max(self._peak, e.statistic / e.threshold if e.threshold else 1.0)
                 text = alarm_text(e)
                 self.out(f"guard: {text} (t={e.t_us / 1e6:.2f} s, statistic {e.statistic:.1f} > {e.threshold:.1f})")
                 if self.link is not None:
@@ -139,6 +154,12 @@ class Daemon:
             elif isinstance(e, Notice):
                 self._operator(e.text, level=e.level, send=e.level == "warning")
         return events
+
+    def ratio(self) -> float:
+        """grd_ratio: the peak since the last call, at least 1.0 while a sensor is excluded."""
+        peak, self._peak = self._peak, 0.0
+        latched = 1.0 if self.monitor.excluded else 0.0
+        return max(peak, latched, self.monitor.detector.ratio())
 
     def _operator(self, text: str, level: str = "warning", send: bool = True) -> None:
         (log.warning if level == "warning" else log.info)("%s", text)
@@ -155,7 +176,8 @@ class Daemon:
         return f"guard: stopped after {self.samples} samples, {self.alarms} alarm(s); skipped {skipped}{lost}"
 
     def shutdown(self) -> None:
-        self.notifier.stopping()
+        if self.started:
+            self.notifier.stopping()
         if self.log is not None:
             self.log.close()
             if self.log.errors:
@@ -165,7 +187,8 @@ class Daemon:
                 part.close()
             except (OSError, SourceError) as e:
                 log.warning("closing %s: %s", type(part).__name__, e)
-        self.out(self.summary())
+        if self.started:
+            self.out(self.summary())
 
     # -- signals --------------------------------------------------------------------------------------
     def install_signal_handlers(self) -> None:

@@ -129,9 +129,10 @@ class MavlinkLink:
             self._send(lambda m: m.named_value_float_send(ms, b"grd_ratio", value))
 
     def statustext(self, text: str, critical: bool) -> None:
+        """Send a STATUSTEXT. Notices are rate-limited; a CRITICAL alarm never is (it is sent once)."""
         now = time.monotonic()
         self._sent = [t for t in self._sent if now - t < 1.0]
-        if len(self._sent) >= STATUSTEXT_PER_S:
+        if not critical and len(self._sent) >= STATUSTEXT_PER_S:
             self.skipped["statustext_rate_limited"] += 1
             return
         self._sent.append(now)

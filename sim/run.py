@@ -23,6 +23,7 @@ from .vehicle import Vehicle
 log = logging.getLogger(__name__)
 
 PHYSICS_STEP_US = 5000      # the vehicle is integrated at 200 Hz or finer
+CAN_TIME_OFFSET_US = 1_000_000  # DroneCAN time stamps: the bus had run 1 s before the drive (0 means "unknown")
 
 
 def period_us(hz: float) -> int:
@@ -129,20 +130,23 @@ def run(scenario: Scenario, seed: int, *, tlog: str | None = None, out: str | No
         speedup: float = 1.0, fast: bool = False, on_statustext=None, can=None) -> dict:
     """Run a scenario to the end; returns the truth record (and writes NAME.truth.json beside a tlog).
 
-    `tlog` writes a file, `out` sends live MAVLink; live output is paced at `speedup` times real
-    time unless `fast`. `on_statustext(msg)` is called for every STATUSTEXT received on `out`.
+    `tlog` writes a file, `out` sends live MAVLink, `can` publishes DroneCAN; live output (MAVLink or
+    CAN) is paced at `speedup` times real time unless `fast`; a tlog alone is written at once. `on_statustext(msg)` is called for every STATUSTEXT received on `out`.
     `can` is an object with send_gnss/send_imu/send_mag (sim.canbus.CanPublisher) or None.
     """
     sim = Simulation(scenario, seed)
     writer = TlogWriter(tlog, sim.encoder) if tlog else None
     link = LiveLink(out, sim.encoder) if out else None
-    paced = link is not None and not fast
+    paced = (link is not None or can is not None) and not fast
     wall0 = time.monotonic()
     try:
         for t_us, messages in sim.ticks():
             if paced:
                 target = wall0 + t_us / 1e6 / speedup
                 while (remaining := target - time.monotonic()) > 0:
+                    if link is None:
+                        time.sleep(remaining)
+                        break
                     msg = link.receive(min(remaining, 0.05))
                     if msg is not None and on_statustext:
                         on_statustext(msg)
@@ -175,6 +179,7 @@ def run(scenario: Scenario, seed: int, *, tlog: str | None = None, out: str | No
 def _to_can(can, t_us: int, msg) -> None:
     """Publish the same sample on a CAN bus as DroneCAN (units back from ArduPilot's)."""
     name = msg.get_type()
+    t_us += CAN_TIME_OFFSET_US
     if name == "GPS_RAW_INT":
         speed, cog = msg.vel / 100.0, math.radians(msg.cog / 100.0)
         can.send_gnss(t_us, msg.lat / 1e7, msg.lon / 1e7, msg.alt / 1000.0, speed * math.cos(cog),
