@@ -270,6 +270,7 @@ class Monitor:
                 self.excluded[sensor] = t_us        # still inconsistent
             elif t_us - self.excluded[sensor] >= self.cfg.readmit_s * 1e6:
                 del self.excluded[sensor]
+                self.detector.forget(sensor)        # a fresh test: what it summed while excluded is spent
                 events += [Cleared(t_us, self.gnss_index, sensor, c) for c in names]
                 fused = True
         if self.record_tests:

@@ -61,7 +61,6 @@ class Daemon:
         self.notifier = Notifier()
         self.should_exit = False
         self.force_exit = False
-        self.skipped: Counter[str] = Counter()
         self.alarms = 0
         self.source = None
         self.link: MavlinkLink | None = None

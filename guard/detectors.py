@@ -147,6 +147,10 @@ class PageCusum:
         return max((max(c.gp[j], c.gn[j]) / self.h[s][j] for s, chans in self.state.items() if s in self.h
                     for c in chans for j in range(len(self.ks))), default=0.0)
 
+    def forget(self, sensor: str) -> None:
+        """Restart one sensor's test (it was re-admitted); its threshold stays."""
+        self.state.pop(sensor, None)
+
     def reset(self) -> None:
         self.state.clear()
         self.h.clear()
@@ -206,6 +210,9 @@ class PaperCusum:
         return max((c.S / (c.n * c.mean + kappa * c.std * math.sqrt(c.n)) for chans in self.state.values()
                     for c in chans if c.n > n0 and c.mean > 0), default=0.0)
 
+    def forget(self, sensor: str) -> None:
+        self.state.pop(sensor, None)
+
     def reset(self) -> None:
         self.state.clear()
 
@@ -239,6 +246,10 @@ class Gate:
 
     def ratio(self) -> float:
         return 0.0
+
+    def forget(self, sensor: str) -> None:
+        for key in [k for k in self.since if k[0] == sensor]:
+            del self.since[key]
 
     def reset(self) -> None:
         self.since.clear()
@@ -280,6 +291,9 @@ class ChiSquare:
 
     def ratio(self) -> float:
         return 0.0
+
+    def forget(self, sensor: str) -> None:
+        pass            # memoryless
 
     def reset(self) -> None:
         self.h.clear()

@@ -68,10 +68,8 @@ def replay(path: str, cfg: Config | None = None, *, listeners=(), progress: bool
     reader = TlogReader(path, cfg.link.system_id if cfg.link.system_id else 0)
     bar = Progress(reader.size, progress)
     alarms, cleared, notices = [], [], []
-    first_t = last_t = None
     try:
         for i, sample in enumerate(tlog_samples(reader)):
-            first_t = sample.t_us if first_t is None else first_t
             events = monitor.step(sample)
             for sink in listeners:
                 sink.on_sample(sample)

@@ -76,7 +76,7 @@ class Simulation:
         Sample k of a sensor at f Hz is taken at round(k * 1e6 / f) microseconds; the vehicle is
         integrated between consecutive sample times in steps of at most PHYSICS_STEP_US.
         """
-        sc, st = self.scenario, self.scenario.start
+        sc = self.scenario
         rates = {"heartbeat": sc.rates.heartbeat_hz, "imu": sc.rates.imu_hz, "gnss": sc.rates.gnss_hz}
         count = {name: 0 for name, hz in rates.items() if hz > 0}
         end_us = int(round(sc.duration_s * 1e6))
