@@ -1,0 +1,56 @@
+"""A reduced evaluation campaign (the harness in tools/eval.py, a couple of minutes): the detectors
+side by side on steps, a freeze and an early attack, with the figures asserted."""
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def summary(tmp_path_factory):
+    spec = importlib.util.spec_from_file_location("guard_eval", ROOT / "tools" / "eval.py")
+    harness = importlib.util.module_from_spec(spec)
+    sys.modules["guard_eval"] = harness         # so its worker processes can find the job function
+    spec.loader.exec_module(harness)
+    out = tmp_path_factory.mktemp("eval")
+    assert harness.main(["--quick", "--families", "step", "freeze", "early", "--seeds", "2",
+                         "--detectors", "cusum", "gate", "--out", str(out), "--jobs", "2"]) == 0
+    assert (out / "runs.csv").stat().st_size > 0 and (out / "delay_vs_step.png").stat().st_size > 0
+    rows = json.loads((out / "summary.json").read_text())
+    return {(s["case"], s["detector"]): s for s in rows}
+
+
+def test_steps_are_caught_at_once_and_isolated(summary):
+    for ch in ("north", "east"):
+        for size in ("2", "10"):
+            s = summary[(f"step {ch} {size} m", "cusum")]
+            assert s["detection_rate"] == 1.0 and s["isolation_rate"] == 1.0
+            assert s["p95_delay_samples"] <= 3          # within 1 s at 10 Hz
+            assert s["false_alarms_per_h"] == 0
+
+
+def test_cusum_beats_the_autopilot_gate(summary):
+    """The 5-sigma gate with 1 s persistence needs 10 samples on a 10 m step; CUSUM needs none."""
+    cusum, gate = summary[("step north 10 m", "cusum")], summary[("step north 10 m", "gate")]
+    assert cusum["median_delay_samples"] == 0
+    assert gate["median_delay_samples"] >= 9
+    assert summary[("step north 2 m", "gate")]["detection_rate"] < 1.0
+
+
+def test_freeze_within_one_sample_and_early_attack_caught(summary):
+    freeze = summary[("freeze", "cusum")]
+    assert freeze["detection_rate"] == 1.0 and freeze["p95_delay_samples"] <= 1
+    early = summary[("step north 5 m at sample 5", "cusum")]
+    assert early["detection_rate"] == 1.0 and early["median_delay_samples"] <= 1
+
+
+def test_delay_is_near_the_lorden_bound_for_steps(summary):
+    for ch in ("north", "east"):
+        s = summary[(f"step {ch} 2 m", "cusum")]
+        assert s["lorden_bound_samples"] > 0
+        assert s["delay_over_lorden"] <= 2.0
