@@ -25,7 +25,7 @@ import numpy as np
 
 from .detectors import DetectorConfig, make_detector
 from .ekf import H_IMU, H_IMU_NO_MAG, H_POS, N_STATES, TH, VX, VY, FilterConfig, NavEKF, gnss_velocity_model
-from .events import CHANNELS, Alarm, Cleared, Estimate, Event, Innovation, Notice, Tested
+from .events import AMBIGUOUS, CHANNELS, Alarm, Cleared, Estimate, Event, Innovation, Notice, Tested
 from .geo import LocalFrame, declination_rad
 from .samples import Attitude, GnssFix, ImuSample
 
@@ -259,7 +259,7 @@ class Monitor:
             fused = True
             for i, offset in hits:
                 events.append(Alarm(t_us, self.gnss_index, sensor, names[i], stat[i], thr[i], offset,
-                                    self.detector.name))
+                                    self.detector.name, AMBIGUOUS.get(sensor, ())))
             if hits and self.cfg.exclude_on_alarm:
                 self.excluded[sensor] = t_us
                 fused = False

@@ -42,8 +42,9 @@ def say(line: str) -> None:
 
 
 def alarm_text(e: Alarm) -> str:
-    """At most 50 characters, readable on a ground station: sensor, axis, offset, GNSS sample."""
-    return f"GUARD ALARM {e.sensor} {e.channel} {e.offset:+.1f}{UNITS[e.sensor]} k={e.gnss_index}"[:50]
+    """At most 50 characters, readable on a ground station: sensor(s), axis, offset, GNSS sample."""
+    sensors = "|".join((e.sensor, *e.ambiguous_with))     # "mag|gyro": either, the physics cannot tell here
+    return f"GUARD ALARM {sensors} {e.channel} {e.offset:+.3g}{UNITS[e.sensor]} k={e.gnss_index}"[:50]
 
 
 class Daemon:

@@ -54,7 +54,8 @@ class Alarm:
     """The detector rejected H0 on one channel: an attack (or fault) is declared at t_us.
 
     `offset` is the detector's estimate of the shift, in the channel's units (metres for GNSS
-    position): it is what a ground station shows as the size of the attack.
+    position): it is what a ground station shows as the size of the attack. `ambiguous_with` names
+    the other sensors that would leave the same trace (see AMBIGUOUS): the alarm does not guess.
     """
 
     t_us: int
@@ -65,6 +66,14 @@ class Alarm:
     threshold: float
     offset: float
     detector: str
+    ambiguous_with: tuple[str, ...] = ()
+
+
+# In the paper's model the yaw rate and the accelerations are random-walk states that follow the
+# IMU, so an IMU bias surfaces in the sensor it contradicts: a gyro bias in the magnetometer's
+# heading, an accelerometer bias in the GNSS velocity. An alarm there names both (measured with
+# tools/eval.py: family "imu").
+AMBIGUOUS: dict[str, tuple[str, ...]] = {"mag": ("gyro",), "gnss_vel": ("accel",)}
 
 
 @dataclass(frozen=True, slots=True)

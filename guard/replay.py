@@ -78,7 +78,7 @@ def replay(path: str, cfg: Config | None = None, *, listeners=(), progress: bool
                 if isinstance(e, Alarm):
                     alarms.append({"time_usec": e.t_us, "gnss_index": e.gnss_index, "sensor": e.sensor,
                                    "channel": e.channel, "statistic": e.statistic, "threshold": e.threshold,
-                                   "offset": e.offset})
+                                   "offset": e.offset, "ambiguous_with": list(e.ambiguous_with)})
                 elif isinstance(e, Cleared):
                     cleared.append({"time_usec": e.t_us, "gnss_index": e.gnss_index, "sensor": e.sensor,
                                     "channel": e.channel})

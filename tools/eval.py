@@ -17,8 +17,8 @@ Families (each a list of cases, each case run over --seeds seeds, attack at t = 
 Metrics per case and detector: detection rate (any alarm at or after the first attacked sample),
 median and 95th-percentile delay (GNSS samples and seconds) from that sample, false alarms per hour
 (any alarm before the attack, or in a clean run), the estimate's position error at the alarm,
-isolation (the first alarm after the attack names the attacked sensor; which sensor it named is in
-runs.csv), the estimate's worst position error in the 30 s after the alarm (GNSS
+isolation (the first alarm after the attack names the attacked sensor alone), ambiguity (it names
+the attacked sensor among others it cannot tell apart; what it named is in runs.csv), the estimate's worst position error in the 30 s after the alarm (GNSS
 attacks), and for steps the median delay over the Lorden bound ln(ARL0)/I, I = nu^2 / (2 S).
 The route turns and changes speed (scenario `clean`), GNSS error is 0.3 m white + 0.7 m correlated.
 """
@@ -137,12 +137,14 @@ def one(job) -> list[dict]:
 
         false = [a for a in col.alarms if k0 is None or a.gnss_index < k0]
         after = [a for a in col.alarms if k0 is not None and a.gnss_index >= k0]
-        right = [a for a in after if a.sensor in sensors]
+        right = [a for a in after if a.sensor in sensors or sensors & set(a.ambiguous_with)]
         row = {"family": family, "case": name, "seed": seed, "detector": det, "hours": duration / 3600,
                "false_alarms": len(false), "detected": bool(after),
                "delay": after[0].gnss_index - k0 if after else None,
-               "isolated": bool(right) and right[0] is after[0],
-               "first_sensor": f"{after[0].sensor} {after[0].channel}" if after else None,
+               "isolated": bool(right) and right[0] is after[0] and not right[0].ambiguous_with,
+               "ambiguous": bool(right) and right[0] is after[0] and bool(right[0].ambiguous_with),
+               "first_sensor": "|".join((after[0].sensor, *after[0].ambiguous_with)) + f" {after[0].channel}"
+               if after else None,
                "error_at_alarm_m": error_at(after[0].t_us) if after else None,
                "S_pos": statistics.median(col.S_pos) if col.S_pos else None}
         if after and family in ("step", "ramp", "spoof", "freeze", "early"):
@@ -172,6 +174,8 @@ def summarise(rows: list[dict], gnss_hz: float, arl0_samples: float) -> list[dic
              "median_delay_s": pct(delays, 50) / gnss_hz if delays else None,
              "false_alarms_per_h": sum(r["false_alarms"] for r in rs) / hours,
              "isolation_rate": (sum(r["isolated"] for r in rs) / max(1, sum(r["detected"] for r in rs)))
+             if delays else None,
+             "ambiguous_rate": (sum(r["ambiguous"] for r in rs) / max(1, sum(r["detected"] for r in rs)))
              if delays else None,
              "median_error_at_alarm_m": pct([r["error_at_alarm_m"] for r in rs if r["detected"]], 50),
              "p95_error_at_alarm_m": pct([r["error_at_alarm_m"] for r in rs if r["detected"]], 95),
@@ -236,7 +240,7 @@ def main(argv=None) -> int:
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     plots(summary, rows, out)
     cols = ["case", "detector", "detection_rate", "median_delay_samples", "p95_delay_samples",
-            "false_alarms_per_h", "isolation_rate", "p95_error_at_alarm_m", "worst_error_30s_after_m",
+            "false_alarms_per_h", "isolation_rate", "ambiguous_rate", "p95_error_at_alarm_m", "worst_error_30s_after_m",
             "delay_over_lorden", "named"]
     print(" | ".join(cols))
     for s in summary:
