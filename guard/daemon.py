@@ -24,14 +24,13 @@ from collections import Counter
 from .config import Config
 from .core import Monitor
 from .errors import SourceError
-from .events import Alarm, Cleared, Notice
+from .events import UNITS, Alarm, Cleared, Notice
 from .link import MavlinkLink
 from .mcaplog import McapLog
 from .sdnotify import Notifier
 
 log = logging.getLogger(__name__)
 
-UNITS = {"gnss_pos": "m", "gnss_vel": "m/s", "mag": "rad", "gyro": "rad/s", "accel": "m/s2"}
 POLL_S = 0.2            # the loop wakes at least this often (watchdog, heartbeat, link timeout)
 LOG_LOST_REPEAT_S = 60.0    # how often to repeat "MCAP log lost" while it stays lost
 
@@ -61,7 +60,6 @@ class Daemon:
         self._peak = 0.0        # largest alarm statistic / threshold since the last grd_ratio
         self.notifier = Notifier()
         self.should_exit = False
-        self.force_exit = False
         self.alarms = 0
         self.source = None
         self.link: MavlinkLink | None = None
@@ -202,6 +200,5 @@ class Daemon:
 
     def handle_exit(self, sig, frame) -> None:
         if self.should_exit:
-            self.force_exit = True
             raise KeyboardInterrupt     # a second signal: stop now, shutdown() still runs
         self.should_exit = True

@@ -19,6 +19,7 @@ CHANNELS: dict[str, tuple[str, ...]] = {
     "gyro": ("z",),                  # rad/s, yaw rate
     "accel": ("x", "y"),             # m/s^2, horizontal specific force (x forward, y left)
 }
+UNITS: dict[str, str] = {"gnss_pos": "m", "gnss_vel": "m/s", "mag": "rad", "gyro": "rad/s", "accel": "m/s^2"}
 
 
 @dataclass(frozen=True, slots=True)

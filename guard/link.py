@@ -50,7 +50,6 @@ class MavlinkLink:
         self.cfg = cfg
         self.system_id = cfg.system_id
         self.skipped: Counter[str] = Counter()
-        self.messages: Counter[str] = Counter()
         try:
             self.conn = mavutil.mavlink_connection(url, source_system=cfg.system_id or 1,
                                                    source_component=COMPONENT_ID, dialect="ardupilotmega",
@@ -109,7 +108,6 @@ class MavlinkLink:
             return None
         if name not in WANTED:
             return None
-        self.messages[name] += 1
         sample, reason = to_sample(msg)
         if reason:
             self.skipped[reason] += 1

@@ -36,14 +36,13 @@ from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
 
 from guard import __version__
 from guard.errors import SourceError
-from guard.events import Alarm, Cleared, Estimate, Notice, Tested
+from guard.events import UNITS, Alarm, Cleared, Estimate, Notice, Tested
 from guard.samples import GnssFix
 
 log = logging.getLogger(__name__)
 
 MAGIC = b"\x89MCAP0\r\n"
 RETRY_S = 30.0   # vehicle time between attempts to open a new file after an I/O error
-UNITS = {"gnss_pos": "m", "gnss_vel": "m/s", "mag": "rad", "gyro": "rad/s", "accel": "m/s^2"}
 
 _NUM = {"type": ["number", "null"]}          # null stands for NaN and inf, which JSON cannot carry
 _NUMS = {"type": "array", "items": _NUM}
