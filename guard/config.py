@@ -106,6 +106,8 @@ def _check(cfg: Config, where: str) -> None:
         "can.imu_node_id": (cfg.can.imu_node_id > 127, "must be 0..127"),
         "can.time_source": (cfg.can.time_source not in ("message", "receive"), "must be \"message\" or \"receive\""),
         "monitor.readmit_s": (cfg.monitor.readmit_s <= 0, "must be > 0"),
+        "monitor.vehicle": (cfg.monitor.vehicle not in ("auto", "ground", "air"),
+                            "must be \"auto\", \"ground\" or \"air\""),
     }
     for f in fields(FilterConfig):
         value = getattr(flt, f.name)

@@ -18,18 +18,22 @@ within `readmit_sigma` for `readmit_s` seconds.
 from __future__ import annotations
 
 import math
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from .detectors import DetectorConfig, make_detector
-from .ekf import H_IMU, H_IMU_NO_MAG, H_POS, N_STATES, TH, VX, VY, FilterConfig, NavEKF, gnss_velocity_model
+from .ekf import (H_IMU, H_IMU_GROUND, H_IMU_NO_MAG, H_IMU_NO_MAG_GROUND, H_POS, N_STATES, TH, VX, VY, FilterConfig,
+                  NavEKF, gnss_velocity_model)
 from .events import AMBIGUOUS, CHANNELS, Alarm, Cleared, Estimate, Event, Innovation, Notice, Tested
 from .geo import LocalFrame, declination_rad
-from .samples import Attitude, GnssFix, ImuSample
+from .samples import Attitude, GnssFix, ImuSample, VehicleType
 
 # rows of the stacked IMU measurement that belong to each sensor: (sensor, first, last + 1)
+WITNESS_S = 1.0        # s of heading-witness residuals weighed when a heading alarm is isolated
+WITNESS_Z = 2.0        # a witness disagrees with the filter when its mean residual is this many standard errors ...
+COURSE_Z = 1.0         # ... the GNSS course, already pulled towards the filter by its own fusion, this many
 IMU_BLOCKS = (("mag", 0, 1), ("gyro", 1, 2), ("accel", 2, 4))
 IMU_BLOCKS_NO_MAG = (("gyro", 0, 1), ("accel", 1, 3))
 
@@ -45,6 +49,7 @@ class MonitorConfig:
     max_gap_s: float = 10.0                 # a longer silence, or time running backwards, re-initialises
     imu_fusion_hz: float = 50.0             # a faster IMU is averaged down to this rate before fusion (0: off)
     freeze_speed_mps: float = 1.0           # a GNSS fix repeated to the last digit while faster than this is frozen
+    vehicle: str = "auto"                   # "ground": v_y = 0 is fused; "air": not; "auto": from the HEARTBEAT
 
 
 class Monitor:
@@ -63,9 +68,14 @@ class Monitor:
         # R: measurement noise covariance of each measurement set
         self.R_pos = np.eye(2) * f.gnss_pos_sigma_m ** 2
         self.R_vel = np.eye(2) * f.gnss_vel_sigma_mps ** 2
-        self.R_imu = np.diag(np.square([f.heading_sigma_rad, f.gyro_sigma_radps, f.accel_sigma_mps2,
-                                        f.accel_sigma_mps2]))
-        self.R_imu_no_mag = self.R_imu[1:, 1:].copy()
+        # IMU block (heading, gyro, accel x, y), and for a ground vehicle the sideways velocity after it;
+        # indexed by `ground`
+        sig = [f.heading_sigma_rad, f.gyro_sigma_radps, f.accel_sigma_mps2, f.accel_sigma_mps2, f.lateral_sigma_mps]
+        self.R_imu = (np.diag(np.square(sig[:4])), np.diag(np.square(sig)))
+        self.R_imu_no_mag = (self.R_imu[0][1:, 1:].copy(), self.R_imu[1][1:, 1:].copy())
+        self.H_imu = (H_IMU, H_IMU_GROUND)
+        self.H_imu_no_mag = (H_IMU_NO_MAG, H_IMU_NO_MAG_GROUND)
+        self.ground = self.cfg.vehicle == "ground"
         self.skipped: Counter[str] = Counter()
         self.gnss_index = -1
         self.roll = self.pitch = 0.0
@@ -84,12 +94,19 @@ class Monitor:
         self._imu_n = self._mag_n = 0
         self._imu_t: int | None = None              # time of the last fused IMU measurement
         self._last_fix: tuple | None = None         # (lat, lon, v_n, v_e) of the previous fix
+        # the two heading witnesses' recent residuals against the filter's heading, (r, sigma) in rad:
+        # the GNSS course (ground vehicles) and the magnetometer, over the last WITNESS_S seconds
+        self._course: deque = deque(maxlen=int(WITNESS_S * 10))
+        self._mag: deque = deque(maxlen=int(WITNESS_S * 50))
+        self._yaw: deque = deque(maxlen=100)         # (t_us, magnetometer heading, gyro yaw rate): the bias's size
 
     # -- the step -----------------------------------------------------------------------------
     def step(self, sample) -> list[Event]:
         if isinstance(sample, Attitude):
             self.roll, self.pitch = sample.roll_rad, sample.pitch_rad
             return []
+        if isinstance(sample, VehicleType):
+            return self._vehicle(sample)
         events: list[Event] = []
         if isinstance(sample, GnssFix):
             self.gnss_index += 1
@@ -104,6 +121,14 @@ class Monitor:
         elif isinstance(sample, ImuSample):
             events += self._imu(sample)
         return events
+
+    def _vehicle(self, v: VehicleType) -> list[Event]:
+        if self.cfg.vehicle != "auto" or v.ground == self.ground:
+            return []
+        self.ground = v.ground
+        what = ("a ground vehicle: its sideways velocity is held at zero" if v.ground
+                else "a vehicle that may move sideways: sideways velocity left free")
+        return [Notice(self.t_us or 0, "info", f"the autopilot reports {what}")]
 
     def _advance(self, t_us: int) -> None:
         if t_us > self.t_us:
@@ -130,6 +155,7 @@ class Monitor:
         e, n = self.frame.to_en(fix.lat_deg, fix.lon_deg)
         events += self._measure("gnss_pos", fix.t_us, np.array([e, n]), ekf.x[:2].copy(), H_POS, self.R_pos)
         if self.cfg.filter.use_gnss_velocity and fix.vel_n_mps is not None:
+            self._witness_course(fix)
             hx, H = gnss_velocity_model(ekf.x)
             events += self._measure("gnss_vel", fix.t_us, np.array([fix.vel_e_mps, fix.vel_n_mps]), hx, H,
                                     self.R_vel)
@@ -137,6 +163,45 @@ class Monitor:
         events.append(Estimate(fix.t_us, self.gnss_index, float(x[0]), float(x[1]), float(x[TH]), x.copy(),
                                np.diagonal(ekf.P).copy(), (f.lat0, f.lon0, f.alt0)))
         return events
+
+    def _witness_course(self, fix: GnssFix) -> None:
+        """The GNSS course against the filter's (ground vehicles, at speed): a witness of the heading."""
+        speed = math.hypot(fix.vel_e_mps, fix.vel_n_mps)
+        if not self.ground or speed < 2.0 * self.cfg.freeze_speed_mps:
+            self._course.clear()
+            return
+        x = self.ekf.x
+        r = math.remainder(math.atan2(fix.vel_n_mps, fix.vel_e_mps) - x[TH] - math.atan2(x[VY], x[VX]), math.tau)
+        self._course.append((r, math.sqrt((self.cfg.filter.gnss_vel_sigma_mps / speed) ** 2 + self.ekf.P[TH, TH])))
+
+    def _isolate(self, sensor: str) -> tuple[str, tuple[str, ...]]:
+        """Which sensor a heading alarm (magnetometer, GNSS velocity) names, and what it cannot rule out.
+
+        Two witnesses see the heading: the magnetometer and, on a ground vehicle at speed, the GNSS
+        course. When both disagree with the filter's heading, in the same direction, the heading the
+        gyro propagated is what is wrong: the gyro is named. When only the alarmed one disagrees, it
+        is named alone. Without the second witness (in the air, standing still) a magnetometer alarm
+        cannot be told from a gyro bias, and an along-track GNSS velocity alarm never can be told from
+        an accelerometer bias (a coordinated spoof looks the same): the alarm names both.
+        """
+        def z(witness):
+            if len(witness) < witness.maxlen // 2:
+                return None
+            r, s = np.mean(witness, axis=0)
+            return r / s * math.sqrt(len(witness))
+        z_course, z_mag = z(self._course), z(self._mag)
+        if z_course is None or z_mag is None:
+            return sensor, AMBIGUOUS.get(sensor, ())
+        if abs(z_course) >= COURSE_Z and abs(z_mag) >= WITNESS_Z and z_course * z_mag > 0:
+            return "gyro", ()
+        if sensor == "mag":
+            return "mag", ()
+        return sensor, (() if abs(z_course) >= WITNESS_Z else AMBIGUOUS.get(sensor, ()))
+
+    def _gyro_bias(self) -> float:
+        """The gyro's offset from the magnetometer: mean yaw rate minus the slope of the heading (last 2 s)."""
+        t, heading, rate = np.array(self._yaw).T
+        return float(np.mean(rate) - np.polyfit((t - t[0]) / 1e6, np.unwrap(heading), 1)[0])
 
     def _freeze(self, fix: GnssFix) -> list[Event]:
         """A receiver's noise never repeats a fix to the last digit while the vehicle moves: a repeat
@@ -191,14 +256,21 @@ class Monitor:
         self._imu_sum, self._imu_n, self._mag_n, self._imu_t = [0.0] * 5, 0, 0, s.t_us
         self._advance(s.t_us)
         heading = None if mag is None else self._heading(*mag)
+        g = self.ground
         if heading is None:
             self.skipped["imu_no_magnetometer"] += 1
-            z, H, R, blocks = np.array([rate, ax, ay]), H_IMU_NO_MAG, self.R_imu_no_mag, IMU_BLOCKS_NO_MAG
+            z, H, R, blocks = [rate, ax, ay], self.H_imu_no_mag[g], self.R_imu_no_mag[g], IMU_BLOCKS_NO_MAG
         else:
-            z, H, R, blocks = np.array([heading, rate, ax, ay]), H_IMU, self.R_imu.copy(), IMU_BLOCKS
+            z, H, R, blocks = [heading, rate, ax, ay], self.H_imu[g], self.R_imu[g].copy(), IMU_BLOCKS
             # a heading sampled up to heading_lag_s late is off by up to yaw rate * lag
             R[0, 0] += (rate * self.cfg.filter.heading_lag_s) ** 2
+        if g:
+            z.append(0.0)                          # the sideways velocity of a wheeled vehicle
+        z = np.array(z)
         r, S, PHT = self.ekf.innovation(z, H @ self.ekf.x, H, R, angle_rows=(0,) if heading is not None else ())
+        if heading is not None:
+            self._mag.append((r[0], math.sqrt(S[0, 0])))
+            self._yaw.append((s.t_us, heading, rate))
         # one stacked update, tested sensor by sensor
         events: list[Event] = []
         keep: list[int] = []
@@ -207,6 +279,8 @@ class Monitor:
             events += ev
             if fused:
                 keep.extend(range(i, j))
+        if g:
+            keep.append(len(r) - 1)                # a constraint, not a sensor: never tested, always fused
         if len(keep) == len(r):
             self.ekf.fuse(r, S, H, R, PHT)
         elif keep:
@@ -258,11 +332,16 @@ class Monitor:
         if sensor not in self.excluded:
             fused = True
             for i, offset in hits:
-                events.append(Alarm(t_us, self.gnss_index, sensor, names[i], stat[i], thr[i], offset,
-                                    self.detector.name, AMBIGUOUS.get(sensor, ())))
-            if hits and self.cfg.exclude_on_alarm:
-                self.excluded[sensor] = t_us
-                fused = False
+                named, ambiguous = self._isolate(sensor) if sensor in ("mag", "gnss_vel") else (sensor, ())
+                if named in self.excluded:
+                    continue
+                channel = names[i] if named == sensor else CHANNELS[named][0]
+                offset = self._gyro_bias() if named == "gyro" else offset
+                events.append(Alarm(t_us, self.gnss_index, named, channel, stat[i], thr[i], offset,
+                                    self.detector.name, ambiguous))
+                if self.cfg.exclude_on_alarm:
+                    self.excluded[named] = t_us
+            fused = sensor not in self.excluded
         else:
             fused = False
             z = np.abs(r) / np.sqrt(np.diagonal(S))

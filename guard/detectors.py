@@ -91,6 +91,7 @@ class PageCusum:
         self.state: dict[str, list[_Page]] = {}
         self.h: dict[str, list[float]] = {}
         self._first_t: dict[str, int] = {}
+        self.peak: dict[str, float] = {}                # sensor -> largest statistic / threshold seen
 
     def threshold(self, rate_hz: float) -> list[float]:
         """h of each member, for one side of one channel sampled at rate_hz."""
@@ -134,6 +135,8 @@ class PageCusum:
                 if ratio > best:
                     best, best_j = ratio, j
             j = best_j
+            if best > self.peak.get(sensor, 0.0):
+                self.peak[sensor] = best
             stat.append(max(c.gp[j], c.gn[j]))
             thr.append(hs[j])
             if best > 1.0:

@@ -22,6 +22,14 @@ that reading would be integrated into a sideways velocity. On a straight line bo
 Measurements (linear in the state but for GNSS velocity):
     GNSS position  (x, y);  GNSS velocity (v_e, v_n) = R(theta) (v_x, v_y)   [beyond the paper]
     heading        theta;  gyro theta_dot + b;  accelerometer (a_x + b_ax, a_y + b_ay)
+    ground vehicles: v_y = 0, a pseudo-measurement (a wheel does not slide sideways) [beyond the paper]
+
+The sideways constraint (`lateral_sigma_mps`) ties the course over ground to the heading. Without it
+a heading error is hidden by a sideways velocity (a multicopter may fly sideways, so it is off in
+the air), and the GNSS course cannot witness the gyro: a gyro bias and a magnetometer attack then
+look alike. With it, the GNSS course is a third heading witness, the IMU alone keeps the position
+through a GNSS outage (its error grows with the speed error only), and a spoof that moves the GNSS
+track sideways from the heading shows at once.
 
 Why numpy and not filterpy's ExtendedKalmanFilter: filterpy's update() computes the innovation and
 fuses it in one call, and guard must see the innovation r = y - ŷ and S = H P Hᵀ + R *before*
@@ -51,6 +59,7 @@ class FilterConfig:
     heading_lag_s: float = 0.1        # timing uncertainty of the magnetometer: adds (yaw rate * lag)^2 to R
     gyro_sigma_radps: float = 0.01
     accel_sigma_mps2: float = 0.15
+    lateral_sigma_mps: float = 0.1    # ground vehicles: sideways body velocity (skid), the v_y = 0 pseudo-measurement
     q_pos_m: float = 0.1              # position random walk, m/sqrt(s): covers correlated GNSS error
     q_heading_rad: float = 0.005
     q_vel_mps: float = 0.05
@@ -141,6 +150,9 @@ H_IMU[1, W] = H_IMU[1, BW] = 1.0
 H_IMU[2, AX] = H_IMU[2, BAX] = 1.0
 H_IMU[3, AY] = H_IMU[3, BAY] = 1.0
 H_IMU_NO_MAG = H_IMU[1:]
+# ground vehicles: the same with the sideways velocity v_y = 0 appended
+H_LATERAL = np.zeros((1, N_STATES)); H_LATERAL[0, VY] = 1.0
+H_IMU_GROUND, H_IMU_NO_MAG_GROUND = np.vstack([H_IMU, H_LATERAL]), np.vstack([H_IMU_NO_MAG, H_LATERAL])
 
 
 def gnss_velocity_model(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

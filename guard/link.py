@@ -24,7 +24,7 @@ from .mavlink import to_sample                 # noqa: E402
 log = logging.getLogger(__name__)
 
 COMPONENT_ID = mavlink.MAV_COMP_ID_ONBOARD_COMPUTER     # 191
-WANTED = {"GPS_RAW_INT", "RAW_IMU", "ATTITUDE"}
+WANTED = {"GPS_RAW_INT", "RAW_IMU", "ATTITUDE", "HEARTBEAT"}
 STATUSTEXT_PER_S = 4                                    # rate limit of what we send
 
 

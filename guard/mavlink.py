@@ -3,6 +3,7 @@
 GPS_RAW_INT: lat/lon degE7, alt mm, vel cm/s, cog cdeg (UINT16_MAX = unknown), h_acc mm,
 vel_acc mm/s; fix_type < 3 is no 3D fix. RAW_IMU (ArduPilot): acceleration mG (specific force),
 gyro mrad/s, magnetometer mGauss, body FRD. ATTITUDE: roll, pitch rad; time_boot_ms.
+HEARTBEAT of an autopilot (autopilot != INVALID): its type; a GROUND_ROVER is a ground vehicle.
 
 A tlog is a sequence of [8-byte big-endian unix microseconds][MAVLink frame]. The reader splits
 frames itself so that garbage between frames, bad CRCs and a truncated tail are counted and
@@ -22,11 +23,12 @@ os.environ.setdefault("MAVLINK20", "1")     # before pymavlink is imported, or f
 from pymavlink.dialects.v20 import ardupilotmega as mavlink   # noqa: E402
 
 from .errors import SourceError                      # noqa: E402
-from .samples import Attitude, GnssFix, ImuSample, Sample   # noqa: E402
+from .samples import Attitude, GnssFix, ImuSample, Sample, VehicleType   # noqa: E402
 
 G = 9.80665
 UNKNOWN_U16 = 65535
-WANTED = {mavlink.MAVLINK_MSG_ID_GPS_RAW_INT, mavlink.MAVLINK_MSG_ID_RAW_IMU, mavlink.MAVLINK_MSG_ID_ATTITUDE}
+WANTED = {mavlink.MAVLINK_MSG_ID_GPS_RAW_INT, mavlink.MAVLINK_MSG_ID_RAW_IMU, mavlink.MAVLINK_MSG_ID_ATTITUDE,
+          mavlink.MAVLINK_MSG_ID_HEARTBEAT}
 V1, V2 = 0xFE, 0xFD
 T_MIN_US, T_MAX_US = 946_684_800_000_000, 4_102_444_800_000_000    # a tlog prefix is unix time: 2000..2100
 DAY_US = 86_400_000_000
@@ -58,6 +60,10 @@ def to_sample(msg) -> tuple[Sample | None, str | None]:
         if not (math.isfinite(msg.roll) and math.isfinite(msg.pitch)) or abs(msg.pitch) > 1.5:
             return None, "attitude_non_finite"
         return Attitude(int(msg.time_boot_ms) * 1000, msg.roll, msg.pitch), None
+    if name == "HEARTBEAT":
+        if msg.autopilot == mavlink.MAV_AUTOPILOT_INVALID:     # a ground station or a companion, not the vehicle
+            return None, None
+        return VehicleType(msg.type == mavlink.MAV_TYPE_GROUND_ROVER), None
     return None, None
 
 

@@ -99,6 +99,7 @@ def replay(path: str, cfg: Config | None = None, *, listeners=(), progress: bool
         "detector": cfg.monitor.detector.name,
         "detector_config": json.loads(json.dumps(asdict(cfg.monitor.detector))),   # tuples as lists
         "gnss_samples": monitor.gnss_index + 1,
+        "peak_ratio": {s: round(v, 3) for s, v in sorted(getattr(monitor.detector, "peak", {}).items())},
         "alarms": alarms,
         "cleared": cleared,
         "notices": notices,

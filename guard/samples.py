@@ -54,4 +54,11 @@ class Attitude:
     pitch_rad: float
 
 
-Sample = GnssFix | ImuSample | Attitude
+@dataclass(frozen=True, slots=True)
+class VehicleType:
+    """The autopilot's vehicle class (HEARTBEAT.type): a ground rover cannot slide sideways."""
+
+    ground: bool
+
+
+Sample = GnssFix | ImuSample | Attitude | VehicleType

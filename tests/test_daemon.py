@@ -38,7 +38,7 @@ from sim.run import Simulation                         # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 SCENARIOS = ROOT / "configs" / "scenarios"
 MAGIC = b"\x89MCAP0\r\n"
-SAMPLE_TYPES = {"GPS_RAW_INT", "RAW_IMU", "ATTITUDE"}
+SAMPLE_TYPES = {"GPS_RAW_INT", "RAW_IMU", "ATTITUDE", "HEARTBEAT"}
 CRITICAL, NOTICE = 2, 5
 MAV_TYPE_ONBOARD_CONTROLLER = 18
 GUARD_COMPONENT = 191
@@ -497,7 +497,8 @@ def run_and_stop(procs, tmp_path: Path, name: str, sig: int, seconds: int, *extr
             msg.fix_type = 0
     try:
         enc, items = scenario_messages("paper", until_s=seconds, edit=last_without_fix)
-        feed(peer, frames(enc, items), pace_every=1)
+        stream = frames(enc, items)
+        feed(peer, stream, pace_every=1)
         deadline, got = time.monotonic() + 30, []
         while time.monotonic() < deadline and not any("GNSS fix lost" in t for t in texts(got)):
             got += drain(peer, quiet_s=0.5, max_s=1.0)
@@ -511,7 +512,7 @@ def run_and_stop(procs, tmp_path: Path, name: str, sig: int, seconds: int, *extr
     else:
         assert rc == 0, (rc, daemon.stderr)
         stopped = [line for line in daemon.stdout if "stopped after" in line]
-        assert stopped and f"stopped after {2 * (10 * seconds + 1)} samples" in stopped[-1], daemon.stdout
+        assert stopped and f"stopped after {sum(carries for _, carries in stream)} samples" in stopped[-1], daemon.stdout
     return mcap
 
 
@@ -637,7 +638,8 @@ def test_signing_required(tmp_path):
 @pytest.mark.parametrize("body, key", [
     ("[link]\nheartbeat_hz = 1.0\nhartbeat_hz = 2.0\n", "link.hartbeat_hz"),
     ("[link]\nlink_timeout_s = \"five\"\n", "link.link_timeout_s"),
-], ids=["unknown-key", "wrong-type"])
+    ("[monitor]\nvehicle = \"boat\"\n", "monitor.vehicle"),
+], ids=["unknown-key", "wrong-type", "bad-choice"])
 def test_config_error_is_one_line(tmp_path, body, key):
     bad = tmp_path / "bad.toml"
     bad.write_text(body)

@@ -16,7 +16,7 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from guard.mavlink import to_sample
-from guard.samples import Attitude, GnssFix, ImuSample
+from guard.samples import Attitude, GnssFix, ImuSample, VehicleType
 from sim.mavout import Encoder
 from sim.sensors import ImuReading
 
@@ -162,8 +162,21 @@ def test_attitude_non_finite_is_skipped(roll, pitch):
 
 def test_unused_message_is_neither_sample_nor_skip():
     mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
-    hb = wire(mav.heartbeat_encode(10, 3, 0, 0, 4), mav)
-    assert to_sample(hb) == (None, None)
+    msg = wire(mav.system_time_encode(1_700_000_000_000_000, 1000), mav)
+    assert to_sample(msg) == (None, None)
+
+
+@pytest.mark.parametrize("mav_type, autopilot, expected", [
+    (mavlink.MAV_TYPE_GROUND_ROVER, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, VehicleType(True)),
+    (mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, VehicleType(False)),
+    (mavlink.MAV_TYPE_SURFACE_BOAT, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, VehicleType(False)),   # drifts sideways
+    (mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, None),                # a ground station: not the vehicle
+    (mavlink.MAV_TYPE_GROUND_ROVER, mavlink.MAV_AUTOPILOT_INVALID, None),       # a companion on a rover: not it
+])
+def test_heartbeat_gives_the_vehicle_class_of_autopilots_only(mav_type, autopilot, expected):
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    msg = wire(mav.heartbeat_encode(mav_type, autopilot, 0, 0, 4), mav)
+    assert to_sample(msg) == (expected, None)
 
 
 # -- the simulator's encoder against guard's decoder ---------------------------------------------

@@ -4,13 +4,15 @@ detectors side by side. Prints a table and writes CSV, JSON and figures.
     python tools/eval.py                       # the full campaign (tens of minutes on 2 cores)
     python tools/eval.py --quick               # a reduced one (a few minutes): what the tests run
     python tools/eval.py --families step ramp --seeds 10 --detectors cusum gate
+    python tools/eval.py --figure "gyro z bias 0.05 rad/s" 3   # one run's tlog, report and figure
 
 Families (each a list of cases, each case run over --seeds seeds, attack at t = 30 s unless said):
   step      GNSS position step of 1, 2, 5, 10, 20 m on north and east
   ramp      GNSS north drifting at 0.05, 0.1, 0.3, 1, 2 m/s
   spoof     coordinated spoof: north position and velocity accelerating away at 0.05 m/s^2
   freeze    the GNSS fix stops updating while the vehicle moves
-  imu       gyro z bias 0.05 rad/s; accelerometer x bias 0.5 m/s^2
+  imu       gyro z bias 0.05 rad/s; accelerometer x bias 0.5 m/s^2; magnetometer x bias 0.05 G and
+            x ramp 0.01 G/s (a heading drift, the gyro bias's look-alike: isolation must tell them apart)
   early     a 5 m GNSS north step at GPS sample 5, after a clean start
   clean     10-minute clean drives with turns and speed changes, and the same with 5 s GNSS dropouts
 
@@ -20,6 +22,9 @@ median and 95th-percentile delay (GNSS samples and seconds) from that sample, fa
 isolation (the first alarm after the attack names the attacked sensor alone), ambiguity (it names
 the attacked sensor among others it cannot tell apart; what it named is in runs.csv), the estimate's worst position error in the 30 s after the alarm (GNSS
 attacks), and for steps the median delay over the Lorden bound ln(ARL0)/I, I = nu^2 / (2 S).
+For cusum, the largest statistic / threshold of each run (peak_ratio): over the clean runs it is the
+threshold's measured margin, and fa_vs_threshold.png shows the share of clean runs that would have
+alarmed had every threshold been scaled by a factor (an ROC-like curve, from clean runs only).
 The route turns and changes speed (scenario `clean`), GNSS error is 0.3 m white + 0.7 m correlated.
 """
 
@@ -70,6 +75,8 @@ def cases(families: list[str]) -> list[tuple[str, str, tuple[Attack, ...], float
     if "imu" in families:
         out.append(("imu", "gyro z bias 0.05 rad/s", (Attack("bias", "gyro", "z", 0.05, START_S),), 60.0))
         out.append(("imu", "accel x bias 0.5 m/s2", (Attack("bias", "accel", "x", 0.5, START_S),), 60.0))
+        out.append(("imu", "mag x bias 0.05 G", (Attack("bias", "mag", "x", 0.05, START_S),), 60.0))
+        out.append(("imu", "mag x ramp 0.01 G/s", (Attack("ramp", "mag", "x", 0.01, START_S),), 60.0))
     if "early" in families:
         out.append(("early", "step north 5 m at sample 5", (Attack("step", "gnss_pos", "north", 5.0, 0.5),), 40.0))
     if "clean" in families:
@@ -146,7 +153,8 @@ def one(job) -> list[dict]:
                "first_sensor": "|".join((after[0].sensor, *after[0].ambiguous_with)) + f" {after[0].channel}"
                if after else None,
                "error_at_alarm_m": error_at(after[0].t_us) if after else None,
-               "S_pos": statistics.median(col.S_pos) if col.S_pos else None}
+               "S_pos": statistics.median(col.S_pos) if col.S_pos else None,
+               "peak_ratio": max(getattr(monitor.detector, "peak", {}).values(), default=None)}
         if after and family in ("step", "ramp", "spoof", "freeze", "early"):
             t_a = after[0].t_us
             window = est[(est[:, 0] >= t_a) & (est[:, 0] <= t_a + 30e6)]
@@ -180,7 +188,10 @@ def summarise(rows: list[dict], gnss_hz: float, arl0_samples: float) -> list[dic
              "median_error_at_alarm_m": pct([r["error_at_alarm_m"] for r in rs if r["detected"]], 50),
              "p95_error_at_alarm_m": pct([r["error_at_alarm_m"] for r in rs if r["detected"]], 95),
              "named": sorted({r["first_sensor"] for r in rs if r["first_sensor"]}),
-             "worst_error_30s_after_m": max((r.get("error_30s_after_m") or 0.0 for r in rs), default=None)}
+             "worst_error_30s_after_m": max((r.get("error_30s_after_m") or 0.0 for r in rs), default=None),
+             "clean_hours": hours if family == "clean" else None,
+             "max_peak_ratio": max((r["peak_ratio"] for r in rs if r["peak_ratio"] is not None), default=None)
+             if family == "clean" else None}
         if family == "step":
             size = float(case.split()[2])
             S = statistics.median(r["S_pos"] for r in rs if r["S_pos"])
@@ -197,6 +208,18 @@ def plots(summary: list[dict], rows: list[dict], out: Path) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    clean = [r for r in rows if r["family"] == "clean" and r["peak_ratio"] is not None]
+    if clean:
+        peaks = np.array([r["peak_ratio"] for r in clean])
+        hours = sum(r["hours"] for r in clean)
+        scale = np.linspace(0.2, 1.5, 131)
+        fig, ax = plt.subplots(figsize=(6, 4))
+        ax.plot(scale, [(peaks >= m).sum() / hours for m in scale], label=f"cusum, {hours:.0f} clean hours")
+        ax.axvline(1.0, color="k", ls="--", label="guard's threshold")
+        ax.set_yscale("symlog", linthresh=0.01)
+        ax.set_xlabel("threshold scale (1 = set from the target interval)")
+        ax.set_ylabel("clean runs alarmed per hour (a lower bound)")
+        ax.legend(fontsize=8); fig.tight_layout(); fig.savefig(out / "fa_vs_threshold.png", dpi=110); plt.close(fig)
     steps = [s for s in summary if s["family"] == "step" and "north" in s["case"]]
     if steps:
         fig, ax = plt.subplots(figsize=(6, 4))
@@ -212,6 +235,30 @@ def plots(summary: list[dict], rows: list[dict], out: Path) -> None:
         ax.legend(fontsize=8); fig.tight_layout(); fig.savefig(out / "delay_vs_step.png", dpi=110); plt.close(fig)
 
 
+def figure(case: str, seed: int, out: Path) -> int:
+    """One run of one case: its tlog and truth, the replay report and the three-panel figure."""
+    from guard.plot import plot
+    from guard.replay import Trace, replay, write_report
+    found = [c for c in cases(["step", "ramp", "spoof", "freeze", "imu", "early", "clean"]) if c[1] == case]
+    if not found:
+        print(f"eval: no case {case!r}; the cases are: " + "; ".join(c[1] for c in cases(
+            ["step", "ramp", "spoof", "freeze", "imu", "early", "clean"])), file=sys.stderr)
+        return 2
+    _, name, attacks, duration = found[0]
+    out.mkdir(parents=True, exist_ok=True)
+    stem = out / f"{name.replace(' ', '_').replace('/', '_')}-seed{seed}"
+    sc = dataclasses.replace(scenarios.load("clean"), name="eval", duration_s=duration, attacks=attacks)
+    truth = run(sc, seed, tlog=f"{stem}.tlog")
+    trace = Trace()
+    report = replay(f"{stem}.tlog", listeners=(trace,))
+    write_report(report, f"{stem}.json")
+    plot(trace, report, f"{stem}.png", truth)
+    first = report["alarms"][0] if report["alarms"] else None
+    print(f"{stem}.tlog, .json, .png: " + (f"first alarm at GNSS sample {first['gnss_index']} "
+          f"({'|'.join([first['sensor'], *first['ambiguous_with']])} {first['channel']})" if first else "no alarm"))
+    return 0
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--families", nargs="+", default=["step", "ramp", "spoof", "freeze", "imu", "early", "clean"])
@@ -220,7 +267,10 @@ def main(argv=None) -> int:
     p.add_argument("--quick", action="store_true", help="3 seeds, fewer cases: a few minutes")
     p.add_argument("--out", default="out/eval")
     p.add_argument("--jobs", type=int, default=2)
+    p.add_argument("--figure", nargs=2, metavar=("CASE", "SEED"), help="simulate one run; keep its tlog, report, figure")
     args = p.parse_args(argv)
+    if args.figure:
+        return figure(args.figure[0], int(args.figure[1]), Path(args.out))
     todo = cases(args.families)
     if args.quick:
         args.seeds = min(args.seeds, 3)
@@ -241,13 +291,13 @@ def main(argv=None) -> int:
     plots(summary, rows, out)
     cols = ["case", "detector", "detection_rate", "median_delay_samples", "p95_delay_samples",
             "false_alarms_per_h", "isolation_rate", "ambiguous_rate", "p95_error_at_alarm_m", "worst_error_30s_after_m",
-            "delay_over_lorden", "named"]
+            "delay_over_lorden", "max_peak_ratio", "named"]
     print(" | ".join(cols))
     for s in summary:
         print(" | ".join("" if s.get(c) is None else (f"{s[c]:.2f}" if isinstance(s[c], float) else
                                                        ", ".join(s[c]) if isinstance(s[c], list) else str(s[c]))
                          for c in cols))
-    print(f"(written to {out}/: runs.csv, summary.json, delay_vs_step.png)")
+    print(f"(written to {out}/: runs.csv, summary.json, delay_vs_step.png, fa_vs_threshold.png)")
     return 0
 
 
