@@ -34,6 +34,7 @@ from .samples import Attitude, GnssFix, ImuSample, VehicleType
 WITNESS_S = 1.0        # s of heading-witness residuals weighed when a heading alarm is isolated
 WITNESS_Z = 2.0        # a witness disagrees with the filter when its mean residual is this many standard errors ...
 COURSE_Z = 1.0         # ... the GNSS course, already pulled towards the filter by its own fusion, this many
+RECEIVER = ("gnss_pos", "gnss_vel")
 IMU_BLOCKS = (("mag", 0, 1), ("gyro", 1, 2), ("accel", 2, 4))
 IMU_BLOCKS_NO_MAG = (("gyro", 0, 1), ("accel", 1, 3))
 
@@ -340,13 +341,20 @@ class Monitor:
                 events.append(Alarm(t_us, self.gnss_index, named, channel, stat[i], thr[i], offset,
                                     self.detector.name, ambiguous))
                 if self.cfg.exclude_on_alarm:
-                    self.excluded[named] = t_us
+                    # one receiver gives GNSS position and velocity, and a spoofer controls both: both
+                    # go; the one that still agrees is re-admitted after readmit_s
+                    for s in RECEIVER if named in RECEIVER else (named,):
+                        self.excluded[s] = t_us
             fused = sensor not in self.excluded
         else:
             fused = False
             z = np.abs(r) / np.sqrt(np.diagonal(S))
             if hits or np.any(z > self.cfg.readmit_sigma):
                 self.excluded[sensor] = t_us        # still inconsistent
+            elif sensor == "gnss_pos" and "gnss_vel" in self.excluded:
+                # a receiver whose velocity is still judged attacked: its position waits. (The filter's own
+                # uncertainty grows while both are out, which would let a spoofed position "agree".)
+                self.excluded[sensor] = t_us
             elif t_us - self.excluded[sensor] >= self.cfg.readmit_s * 1e6:
                 del self.excluded[sensor]
                 self.detector.forget(sensor)        # a fresh test: what it summed while excluded is spent

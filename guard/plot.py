@@ -44,13 +44,16 @@ def plot(trace: Trace, report: dict, out: str, truth: dict | None = None) -> Non
         axes[1].set_ylabel("north GNSS minus\nestimate (m)")
     alarms = report["alarms"]
     key = (alarms[0]["sensor"], alarms[0]["channel"]) if alarms else ("gnss_pos", "north")
+    if key not in trace.stats and trace.stats:
+        # an alarm without a test of its own (frozen; a gyro named by the heading witnesses): the channel
+        # that came closest to its threshold
+        key = max(trace.stats, key=lambda k: max(g / h if h > 0 else 0.0 for _, g, h in trace.stats[k]))
     series = np.array(trace.stats.get(key, []), dtype=float)
     if len(series):
         axes[2].plot((series[:, 0] - t0) / 1e6, series[:, 1], lw=0.8, label="statistic")
         axes[2].plot((series[:, 0] - t0) / 1e6, series[:, 2], lw=0.8, ls="--", color="k", label="threshold")
     for a in alarms:
-        if (a["sensor"], a["channel"]) == key:
-            axes[2].axvline((a["time_usec"] - t0) / 1e6, color="r", lw=1.0)
+        axes[2].axvline((a["time_usec"] - t0) / 1e6, color="r", lw=1.0 if (a["sensor"], a["channel"]) == key else 0.5)
     for a in (truth or {}).get("attacks", []):
         for ax in axes:
             ax.axvline((a["start_time_usec"] - t0) / 1e6, color="grey", lw=0.8, ls=":")

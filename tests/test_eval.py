@@ -12,11 +12,16 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
-def summary(tmp_path_factory):
+def harness():
     spec = importlib.util.spec_from_file_location("guard_eval", ROOT / "tools" / "eval.py")
-    harness = importlib.util.module_from_spec(spec)
-    sys.modules["guard_eval"] = harness         # so its worker processes can find the job function
-    spec.loader.exec_module(harness)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["guard_eval"] = module          # so its worker processes can find the job function
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def summary(harness, tmp_path_factory):
     out = tmp_path_factory.mktemp("eval")
     assert harness.main(["--quick", "--families", "step", "freeze", "early", "--seeds", "2",
                          "--detectors", "cusum", "gate", "--out", str(out), "--jobs", "2"]) == 0
@@ -47,6 +52,21 @@ def test_freeze_within_one_sample_and_early_attack_caught(summary):
     assert freeze["detection_rate"] == 1.0 and freeze["p95_delay_samples"] <= 1
     early = summary[("step north 5 m at sample 5", "cusum")]
     assert early["detection_rate"] == 1.0 and early["median_delay_samples"] <= 1
+
+
+def test_estimate_stays_within_5_m_for_30_s_after_the_alarm(summary):
+    for case in ("freeze", "step north 10 m", "step east 2 m"):
+        assert summary[(case, "cusum")]["worst_error_30s_after_m"] < 5.0, case
+
+
+def test_one_run_on_request(harness, tmp_path, capsys):
+    assert harness.main(["--figure", "freeze", "1", "--out", str(tmp_path)]) == 0
+    stem = tmp_path / "freeze-seed1"
+    report = json.loads(stem.with_suffix(".json").read_text())
+    assert report["alarms"][0]["channel"] == "frozen" and stem.with_suffix(".png").stat().st_size > 0
+    assert f"first alarm at GNSS sample {report['alarms'][0]['gnss_index']} (gnss_pos frozen)" in capsys.readouterr().out
+    assert harness.main(["--figure", "no such case", "1", "--out", str(tmp_path)]) == 2
+    assert "the cases are" in capsys.readouterr().err
 
 
 def test_delay_is_near_the_lorden_bound_for_steps(summary):

@@ -123,6 +123,8 @@ def one(job) -> list[dict]:
     real = [a for a in truth["attacks"] if a["kind"] != "dropout"]
     k0 = min((a["start_gnss_index"] for a in real), default=None)
     sensors = {a["sensor"] for a in real}
+    if any(a["kind"] in ("spoof", "freeze") for a in real):
+        sensors |= {"gnss_pos", "gnss_vel"}          # they act on the whole fix
     traj = truth["trajectory"]
     rows = []
     for det in detectors:
