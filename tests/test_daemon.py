@@ -8,6 +8,7 @@ waits until the daemon has taken every sample it was sent (`d.samples`), so noth
 
 from __future__ import annotations
 
+import dataclasses
 import contextlib
 import json
 import math
@@ -663,3 +664,10 @@ def test_tcp_nothing_listening_is_one_line():
     assert len(lines) == 1, r.stderr
     assert f"tcp:127.0.0.1:{port}" in lines[0] and "refused" in lines[0].lower(), lines[0]
     assert "listening on" not in r.stdout
+
+
+def test_shipped_config_is_the_defaults():
+    """configs/guard.toml documents every key with its default: it must say what the code does."""
+    from guard.config import Config, load
+    shipped = load(str(ROOT / "configs" / "guard.toml"))
+    assert dataclasses.replace(shipped, source_text="") == Config()
