@@ -8,8 +8,8 @@ waits until the daemon has taken every sample it was sent (`d.samples`), so noth
 
 from __future__ import annotations
 
-import dataclasses
 import contextlib
+import dataclasses
 import json
 import math
 import os
