@@ -5,6 +5,7 @@ detectors side by side. Prints a table and writes CSV, JSON and figures.
     python tools/eval.py --quick               # a reduced one (a few minutes): what the tests run
     python tools/eval.py --families step ramp --seeds 10 --detectors cusum gate
     python tools/eval.py --figure "gyro z bias 0.05 rad/s" 3   # one run's tlog, report and figure
+    python tools/eval.py --families imu --set filter.heading_sigma_rad=0.03   # a config key changed
 
 Families (each a list of cases, each case run over --seeds seeds, attack at t = 30 s unless said):
   step      GNSS position step of 1, 2, 5, 10, 20 m on north and east
@@ -38,6 +39,7 @@ import math
 import statistics
 import sys
 import tempfile
+import tomllib
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -48,6 +50,7 @@ import numpy as np                               # noqa: E402
 
 from guard.config import parse                   # noqa: E402
 from guard.core import Monitor                   # noqa: E402
+from guard.errors import ConfigError             # noqa: E402
 from guard.events import Alarm, Estimate, Tested  # noqa: E402
 from guard.geo import LocalFrame                 # noqa: E402
 from guard.mavlink import TlogReader, tlog_samples   # noqa: E402
@@ -86,11 +89,16 @@ def cases(families: list[str]) -> list[tuple[str, str, tuple[Attack, ...], float
     return out
 
 
-def detector_config(name: str):
-    table = {"detector": {"name": name}}
+def detector_config(name: str, settings: tuple[str, ...] = ()):
+    """guard's defaults with `settings` ("section.key=TOML value") applied, and the named detector."""
+    table: dict = {"detector": {"name": name}}
     if name == "paper":      # as the paper describes it: restart the test, never stop fusing
         table["monitor"] = {"exclude_on_alarm": False}
-    return parse(table, f"eval:{name}")
+    for item in settings:
+        key, _, value = item.partition("=")
+        section, _, field = key.strip().partition(".")
+        table.setdefault(section, {})[field] = tomllib.loads(f"v = {value}")["v"]
+    return parse(table, f"eval:{name} {' '.join(settings)}")
 
 
 class Collector:
@@ -115,7 +123,7 @@ class Collector:
 
 def one(job) -> list[dict]:
     """Simulate one case and seed, replay it through every detector; one row per detector."""
-    family, name, attacks, duration, seed, detectors, work = job
+    family, name, attacks, duration, seed, detectors, work, settings = job
     base = scenarios.load("clean")
     sc = dataclasses.replace(base, name="eval", duration_s=duration, attacks=attacks)
     tlog = Path(work) / f"{abs(hash((name, seed)))}.tlog"
@@ -128,7 +136,7 @@ def one(job) -> list[dict]:
     traj = truth["trajectory"]
     rows = []
     for det in detectors:
-        cfg = detector_config(det)
+        cfg = detector_config(det, settings)
         monitor, col = Monitor(cfg.monitor), Collector()
         reader = TlogReader(str(tlog))
         for sample in tlog_samples(reader):
@@ -269,6 +277,8 @@ def main(argv=None) -> int:
     p.add_argument("--quick", action="store_true", help="3 seeds, fewer cases: a few minutes")
     p.add_argument("--out", default="out/eval")
     p.add_argument("--jobs", type=int, default=2)
+    p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                   help="change one config key for every detector (a TOML value: 0.03, '\"air\"')")
     p.add_argument("--figure", nargs=2, metavar=("CASE", "SEED"), help="simulate one run; keep its tlog, report, figure")
     args = p.parse_args(argv)
     if args.figure:
@@ -280,7 +290,13 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as work:
-        jobs = [(f, n, a, d, seed, args.detectors, work) for f, n, a, d in todo for seed in range(args.seeds)]
+        try:                                             # a bad key stops here, named, before any work
+            detector_config("cusum", tuple(args.set))
+        except (ConfigError, tomllib.TOMLDecodeError) as e:
+            print(f"eval: --set: {e}", file=sys.stderr)
+            return 2
+        jobs = [(f, n, a, d, seed, args.detectors, work, tuple(args.set)) for f, n, a, d in todo
+                for seed in range(args.seeds)]
         with ProcessPoolExecutor(max_workers=args.jobs) as pool:
             rows = [r for rs in pool.map(one, jobs) for r in rs]
     cfg = detector_config("cusum").monitor.detector
