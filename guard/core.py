@@ -12,7 +12,13 @@ IMU affordable on a companion computer. The noise model is left as configured (c
 A sensor whose test rejects H0 raises an Alarm and is then excluded: its innovations are still
 formed and tested, but no longer fused, so the estimate rides on the other sensors instead of
 following the attack. It is re-admitted (Cleared) when its normalised innovations have stayed
-within `readmit_sigma` for `readmit_s` seconds.
+within `readmit_sigma` for `readmit_s` seconds. GNSS position and velocity come from one receiver
+and go together; a position is not re-admitted while its velocity is still out.
+
+Which sensor an alarm names (`_isolate`): a heading alarm (magnetometer, GNSS velocity) is weighed
+against the two heading witnesses, the magnetometer and, on a ground vehicle, the GNSS course; both
+against the filter's heading means the gyro bent it. A ground vehicle (`vehicle`, from the
+autopilot's HEARTBEAT by default) also has v_y = 0 fused with every IMU update.
 """
 
 from __future__ import annotations
