@@ -36,11 +36,11 @@ from .events import AMBIGUOUS, CHANNELS, Alarm, Cleared, Estimate, Event, Innova
 from .geo import LocalFrame, declination_rad
 from .samples import Attitude, GnssFix, ImuSample, VehicleType
 
-# rows of the stacked IMU measurement that belong to each sensor: (sensor, first, last + 1)
 WITNESS_S = 1.0        # s of heading-witness residuals weighed when a heading alarm is isolated
 WITNESS_Z = 2.0        # a witness disagrees with the filter when its mean residual is this many standard errors ...
 COURSE_Z = 1.0         # ... the GNSS course, already pulled towards the filter by its own fusion, this many
-RECEIVER = ("gnss_pos", "gnss_vel")
+RECEIVER = ("gnss_pos", "gnss_vel")                 # one receiver: excluded together
+# rows of the stacked IMU measurement that belong to each sensor: (sensor, first, last + 1)
 IMU_BLOCKS = (("mag", 0, 1), ("gyro", 1, 2), ("accel", 2, 4))
 IMU_BLOCKS_NO_MAG = (("gyro", 0, 1), ("accel", 1, 3))
 
@@ -349,8 +349,8 @@ class Monitor:
                 if self.cfg.exclude_on_alarm:
                     # one receiver gives GNSS position and velocity, and a spoofer controls both: both
                     # go; the one that still agrees is re-admitted after readmit_s
-                    for s in RECEIVER if named in RECEIVER else (named,):
-                        self.excluded[s] = t_us
+                    for out in RECEIVER if named in RECEIVER else (named,):
+                        self.excluded[out] = t_us
             fused = sensor not in self.excluded
         else:
             fused = False
