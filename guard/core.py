@@ -40,6 +40,7 @@ WITNESS_S = 1.0        # s of heading-witness residuals weighed when a heading a
 WITNESS_Z = 2.0        # a witness disagrees with the filter when its mean residual is this many standard errors ...
 COURSE_Z = 1.0         # ... the GNSS course, already pulled towards the filter by its own fusion, this many
 RECEIVER = ("gnss_pos", "gnss_vel")                 # one receiver: excluded together
+REWIND_S = 20.0        # s of filter history kept to undo what a GNSS attack fed the filter before its alarm
 # rows of the stacked IMU measurement that belong to each sensor: (sensor, first, last + 1)
 IMU_BLOCKS = (("mag", 0, 1), ("gyro", 1, 2), ("accel", 2, 4))
 IMU_BLOCKS_NO_MAG = (("gyro", 0, 1), ("accel", 1, 3))
@@ -106,6 +107,10 @@ class Monitor:
         self._course: deque = deque(maxlen=int(WITNESS_S * 10))
         self._mag: deque = deque(maxlen=int(WITNESS_S * 50))
         self._yaw: deque = deque(maxlen=100)         # (t_us, magnetometer heading, gyro yaw rate): the bias's size
+        # the filter before each GNSS epoch's fusion, (t_us, x, P), and every IMU fusion since,
+        # (t_us, z, H, R, angle_rows): what a rewind needs
+        self._epochs: deque = deque(maxlen=int(REWIND_S * 10))
+        self._imu_log: deque = deque(maxlen=int(REWIND_S * 50))
 
     # -- the step -----------------------------------------------------------------------------
     def step(self, sample) -> list[Event]:
@@ -158,6 +163,7 @@ class Monitor:
             return events + self._initialise(fix)
         self._advance(fix.t_us)
         ekf = self.ekf
+        self._epochs.append((fix.t_us, ekf.x.copy(), ekf.P.copy()))
         events += self._freeze(fix)
         e, n = self.frame.to_en(fix.lat_deg, fix.lon_deg)
         events += self._measure("gnss_pos", fix.t_us, np.array([e, n]), ekf.x[:2].copy(), H_POS, self.R_pos)
@@ -204,6 +210,25 @@ class Monitor:
         if sensor == "mag":
             return "mag", ()
         return sensor, (() if abs(z_course) >= WITNESS_Z else AMBIGUOUS.get(sensor, ()))
+
+    def _rewind(self, epochs: int) -> None:
+        """Undo the last `epochs` GNSS epochs: back to the filter before the attack's first sample was
+        fused (the CUSUM's run gives the onset), then the IMU fusions since, GNSS left out."""
+        if epochs < 1 or epochs > len(self._epochs):
+            return
+        t0, x, P = self._epochs[-epochs]
+        now, ekf = self.t_us, self.ekf
+        ekf.x, ekf.P, t = x.copy(), P.copy(), t0
+        for t_imu, z, H, R, angle in self._imu_log:
+            if t_imu <= t0:
+                continue
+            ekf.predict((t_imu - t) / 1e6)
+            t = t_imu
+            r, S, PHT = ekf.innovation(z, H @ ekf.x, H, R, angle_rows=angle)
+            ekf.fuse(r, S, H, R, PHT)
+        ekf.predict((now - t) / 1e6)
+        self._epochs.clear()
+        self._imu_log.clear()
 
     def _gyro_bias(self) -> float:
         """The gyro's offset from the magnetometer: mean yaw rate minus the slope of the heading (last 2 s)."""
@@ -288,11 +313,14 @@ class Monitor:
                 keep.extend(range(i, j))
         if g:
             keep.append(len(r) - 1)                # a constraint, not a sensor: never tested, always fused
+        angle = (0,) if heading is not None else ()
         if len(keep) == len(r):
             self.ekf.fuse(r, S, H, R, PHT)
+            self._imu_log.append((s.t_us, z, H, R, angle))
         elif keep:
             ix = np.ix_(keep, keep)
             self.ekf.fuse(r[keep], S[ix], H[keep], R[ix], PHT[:, keep])
+            self._imu_log.append((s.t_us, z[keep], H[keep], R[ix], angle if keep[0] == 0 else ()))
         return events
 
     def _heading(self, mx: float, my: float) -> float:
@@ -351,6 +379,8 @@ class Monitor:
                     # go; the one that still agrees is re-admitted after readmit_s
                     for out in RECEIVER if named in RECEIVER else (named,):
                         self.excluded[out] = t_us
+                    if named in RECEIVER:
+                        self._rewind(getattr(self.detector, "run_length", {}).get(sensor, 0))
             fused = sensor not in self.excluded
         else:
             fused = False

@@ -92,6 +92,7 @@ class PageCusum:
         self.h: dict[str, list[float]] = {}
         self._first_t: dict[str, int] = {}
         self.peak: dict[str, float] = {}                # sensor -> largest statistic / threshold seen
+        self.run_length: dict[str, int] = {}            # sensor -> samples in the last alarm's run: its onset
 
     def threshold(self, rate_hz: float) -> list[float]:
         """h of each member, for one side of one channel sampled at rate_hz."""
@@ -141,7 +142,9 @@ class PageCusum:
             thr.append(hs[j])
             if best > 1.0:
                 up = c.gp[j] >= c.gn[j]
-                alarms.append((i, c.sum_p[j] / c.cnt_p[j] if up else c.sum_n[j] / c.cnt_n[j]))
+                n = c.cnt_p[j] if up else c.cnt_n[j]
+                alarms.append((i, (c.sum_p[j] if up else c.sum_n[j]) / n))
+                self.run_length[sensor] = n
                 chans[i] = _Page(nk)      # the test restarts after an alarm
         return tuple(stat), tuple(thr), alarms
 

@@ -347,20 +347,25 @@ def test_core_gnss_north_jump_alarms_excludes_and_clears():
     assert alarm.offset == pytest.approx(10.0, abs=1.0)
     assert alarm.statistic > alarm.threshold
 
+    # the receiver goes as a whole; its velocity, which agrees, returns after readmit_s, its position
+    # readmit_s after the attack ends
     cleared = of(events, Cleared)
-    assert sorted(c.channel for c in cleared) == ["east", "north"]
-    assert {c.sensor for c in cleared} == {"gnss_pos"}
-    t_clear = cleared[0].t_us
-    last_attacked = t_end - 200_000
+    assert sorted((c.sensor, c.channel) for c in cleared) == [("gnss_pos", "east"), ("gnss_pos", "north"),
+                                                              ("gnss_vel", "east"), ("gnss_vel", "north")]
     readmit_us = int(MonitorConfig().readmit_s * 1e6)
+    t_vel = next(c.t_us for c in cleared if c.sensor == "gnss_vel")
+    assert t_vel == t_start + readmit_us
+    t_clear = next(c.t_us for c in cleared if c.sensor == "gnss_pos")
+    last_attacked = t_end - 200_000
     assert t_clear == last_attacked + readmit_us             # consistent for readmit_s, then re-admitted
 
-    pos = [t for t in of(events, Tested) if t.innovation.sensor == "gnss_pos"]
-    for t in pos:
-        ti = t.innovation.t_us
-        assert t.innovation.fused == (ti < t_start or ti >= t_clear), ti
-    # the other sensors were fused throughout, and the estimate did not follow the attack
-    assert all(t.innovation.fused for t in of(events, Tested) if t.innovation.sensor != "gnss_pos")
+    for sensor, back in (("gnss_pos", t_clear), ("gnss_vel", t_vel)):
+        for t in of(events, Tested):
+            if t.innovation.sensor == sensor:
+                ti = t.innovation.t_us
+                assert t.innovation.fused == (ti < t_start or ti >= back), (sensor, ti)
+    # the IMU was fused throughout, and the estimate did not follow the attack
+    assert all(t.innovation.fused for t in of(events, Tested) if t.innovation.sensor not in ("gnss_pos", "gnss_vel"))
     for est in of(events, Estimate):
         t = (est.t_us - T0_US) / 1e6
         assert est.north_m == pytest.approx(0.0, abs=0.7), t

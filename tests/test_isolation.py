@@ -74,27 +74,40 @@ def test_accelerometer_bias_along_track_is_ambiguous(tmp_path):
     assert {a.sensor, *a.ambiguous_with} == {"gnss_vel", "accel"}
 
 
-def test_coordinated_spoof_is_caught_within_15_s(tmp_path):
+def errors(events, truth):
+    """(t_us, position error) of every Estimate against the simulator's truth."""
+    est = [e for e in events if isinstance(e, Estimate)]
+    frame = LocalFrame(*est[0].origin)
+    tr = truth["trajectory"]
+    t_true = np.array(tr["t_usec"])
+    true_en = np.array([frame.to_en(a, b) for a, b in zip(tr["lat_deg"], tr["lon_deg"])])
+    return [(e.t_us, float(np.hypot(*(np.array([e.east_m, e.north_m])
+                                      - true_en[min(np.searchsorted(t_true, e.t_us), len(t_true) - 1)]))))
+            for e in est]
+
+
+def test_coordinated_spoof_is_caught_within_15_s_and_undone(tmp_path):
+    """Caught on GNSS velocity; the filter is rewound to before the attack's onset, so the estimate
+    sheds what the spoof fed it and stays within 5 m of the truth for 30 s after the alarm."""
     for seed in SEEDS:
-        tlog, truth = simulate(tmp_path, Attack("spoof", "gnss_pos", "north", 0.05, START_S), seed, 50.0)
+        tlog, truth = simulate(tmp_path, Attack("spoof", "gnss_pos", "north", 0.05, START_S), seed, 75.0)
         k0 = truth["attacks"][0]["start_gnss_index"]
-        a = first_alarm(events_of(tlog), k0)
+        events = events_of(tlog)
+        a = first_alarm(events, k0)
         assert a.sensor.startswith("gnss") and a.gnss_index - k0 <= 150, f"seed {seed}: {a}"
+        err = errors(events, truth)
+        before = [e for t, e in err if t < a.t_us][-1]
+        after = [e for t, e in err if a.t_us <= t <= a.t_us + 30e6]
+        assert after[0] < before, f"seed {seed}: the rewind did not undo the spoof ({before:.1f} -> {after[0]:.1f} m)"
+        assert max(after) < 5.0, f"seed {seed}: {max(after):.1f} m"
 
 
 def test_estimate_holds_through_a_gnss_freeze(tmp_path):
     """Position and velocity are both excluded: the IMU, held to the road, keeps the error under 5 m for 30 s."""
     for seed in SEEDS:
         tlog, truth = simulate(tmp_path, Attack("freeze", "gnss_pos", "north", 0.0, START_S), seed, 60.0)
-        events = events_of(tlog)
-        est = [e for e in events if isinstance(e, Estimate)]
-        frame = LocalFrame(*est[0].origin)
-        tr = truth["trajectory"]
-        t_true = np.array(tr["t_usec"])
-        true_en = np.array([frame.to_en(a, b) for a, b in zip(tr["lat_deg"], tr["lon_deg"])])
-        worst = max(float(np.hypot(*(np.array([e.east_m, e.north_m]) - true_en[min(np.searchsorted(t_true, e.t_us),
-                                                                                  len(t_true) - 1)])))
-                    for e in est if START_S * 1e6 <= e.t_us - tr["t_usec"][0] <= (START_S + 30) * 1e6)
+        t0 = truth["trajectory"]["t_usec"][0]
+        worst = max(e for t, e in errors(events_of(tlog), truth) if START_S <= (t - t0) / 1e6 <= START_S + 30)
         assert worst < 5.0, f"seed {seed}: {worst:.1f} m"
 
 

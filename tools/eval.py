@@ -19,10 +19,11 @@ Families (each a list of cases, each case run over --seeds seeds, attack at t = 
 
 Metrics per case and detector: detection rate (any alarm at or after the first attacked sample),
 median and 95th-percentile delay (GNSS samples and seconds) from that sample, false alarms per hour
-(any alarm before the attack, or in a clean run), the estimate's position error at the alarm,
-isolation (the first alarm after the attack names the attacked sensor alone), ambiguity (it names
-the attacked sensor among others it cannot tell apart; what it named is in runs.csv), the estimate's worst position error in the 30 s after the alarm (GNSS
-attacks), and for steps the median delay over the Lorden bound ln(ARL0)/I, I = nu^2 / (2 S).
+(any alarm before the attack, or in a clean run), the estimate's position error just before the
+alarm (what the attack did before it was caught), isolation (the first alarm after the attack names
+the attacked sensor alone), ambiguity (it names the attacked sensor among others it cannot tell
+apart; what it named is in runs.csv), the estimate's worst position error from the alarm to 30 s
+after it (GNSS attacks), and for steps the median delay over the Lorden bound ln(ARL0)/I, I = nu^2 / (2 S).
 For cusum, the largest statistic / threshold of each run (peak_ratio): over the clean runs it is the
 threshold's measured margin, and fa_vs_threshold.png shows the share of clean runs that would have
 alarmed had every threshold been scaled by a factor (an ROC-like curve, from clean runs only).
@@ -147,8 +148,11 @@ def one(job) -> list[dict]:
         t_true = np.array(traj["t_usec"], dtype=float)
         est = np.array(col.estimates, dtype=float)
 
-        def error_at(t_us: float) -> float:
-            i = min(int(np.searchsorted(est[:, 0], t_us)), len(est) - 1)
+        def error_at(t_us: float, before: bool = False) -> float:
+            """Error of the estimate at t_us (or of the last one before it: what the attack did before
+            the alarm, which guard's rewind then undoes in the estimate at the alarm)."""
+            i = int(np.searchsorted(est[:, 0], t_us)) - before
+            i = min(max(i, 0), len(est) - 1)
             j = min(int(np.searchsorted(t_true, est[i, 0])), len(t_true) - 1)
             return float(np.hypot(*(est[i, 1:] - true_en[j])))
 
@@ -162,7 +166,7 @@ def one(job) -> list[dict]:
                "ambiguous": bool(right) and right[0] is after[0] and bool(right[0].ambiguous_with),
                "first_sensor": "|".join((after[0].sensor, *after[0].ambiguous_with)) + f" {after[0].channel}"
                if after else None,
-               "error_at_alarm_m": error_at(after[0].t_us) if after else None,
+               "error_at_alarm_m": error_at(after[0].t_us, before=True) if after else None,
                "S_pos": statistics.median(col.S_pos) if col.S_pos else None,
                "peak_ratio": max(getattr(monitor.detector, "peak", {}).values(), default=None)}
         if after and family in ("step", "ramp", "spoof", "freeze", "early"):
