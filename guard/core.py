@@ -111,6 +111,7 @@ class Monitor:
         # (t_us, z, H, R, angle_rows): what a rewind needs
         self._epochs: deque = deque(maxlen=int(REWIND_S * 10))
         self._imu_log: deque = deque(maxlen=int(REWIND_S * 50))
+        self._rewind_epochs = 0                     # a rewind owed: done at the next step, after the alarm is out
 
     # -- the step -----------------------------------------------------------------------------
     def step(self, sample) -> list[Event]:
@@ -119,6 +120,9 @@ class Monitor:
             return []
         if isinstance(sample, VehicleType):
             return self._vehicle(sample)
+        if self._rewind_epochs:
+            self._rewind(self._rewind_epochs)
+            self._rewind_epochs = 0
         events: list[Event] = []
         if isinstance(sample, GnssFix):
             self.gnss_index += 1
@@ -213,7 +217,9 @@ class Monitor:
 
     def _rewind(self, epochs: int) -> None:
         """Undo the last `epochs` GNSS epochs: back to the filter before the attack's first sample was
-        fused (the CUSUM's run gives the onset), then the IMU fusions since, GNSS left out."""
+        fused (the CUSUM's run gives the onset), then the IMU fusions since, GNSS left out. Up to
+        REWIND_S of IMU (tens of milliseconds), so it runs at the step after the alarm's, once the
+        alarm is out."""
         if epochs < 1 or epochs > len(self._epochs):
             return
         t0, x, P = self._epochs[-epochs]
@@ -380,7 +386,7 @@ class Monitor:
                     for out in RECEIVER if named in RECEIVER else (named,):
                         self.excluded[out] = t_us
                     if named in RECEIVER:
-                        self._rewind(getattr(self.detector, "run_length", {}).get(sensor, 0))
+                        self._rewind_epochs = getattr(self.detector, "run_length", {}).get(sensor, 0)
             fused = sensor not in self.excluded
         else:
             fused = False
