@@ -231,6 +231,7 @@ def plots(summary: list[dict], rows: list[dict], out: Path) -> None:
         ax.plot(scale, [(peaks >= m).sum() / hours for m in scale], label=f"cusum, {hours:.0f} clean hours")
         ax.axvline(1.0, color="k", ls="--", label="guard's threshold")
         ax.set_yscale("symlog", linthresh=0.01)
+        ax.set_ylim(bottom=0.0)
         ax.set_xlabel("threshold scale (1 = set from the target interval)")
         ax.set_ylabel("clean runs alarmed per hour (a lower bound)")
         ax.legend(fontsize=8); fig.tight_layout(); fig.savefig(out / "fa_vs_threshold.png", dpi=110); plt.close(fig)
