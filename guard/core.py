@@ -97,6 +97,7 @@ class Monitor:
         self.t_us: int | None = None
         self.gnss_lost = False
         self.excluded: dict[str, int] = {}         # sensor -> time of the last inconsistent innovation
+        self._with_receiver: set[str] = set()      # excluded with the receiver, not by an alarm of its own
         self.detector.reset()
         self._imu_sum = [0.0] * 5                   # ax, ay, yaw rate, m_x, m_y since the last fusion
         self._imu_n = self._mag_n = 0
@@ -384,7 +385,10 @@ class Monitor:
                     # one receiver gives GNSS position and velocity, and a spoofer controls both: both
                     # go; the one that still agrees is re-admitted after readmit_s
                     for out in RECEIVER if named in RECEIVER else (named,):
+                        if out not in self.excluded and out != named:
+                            self._with_receiver.add(out)
                         self.excluded[out] = t_us
+                    self._with_receiver.discard(named)
                     if named in RECEIVER:
                         self._rewind_epochs = getattr(self.detector, "run_length", {}).get(sensor, 0)
             fused = sensor not in self.excluded
@@ -400,7 +404,10 @@ class Monitor:
             elif t_us - self.excluded[sensor] >= self.cfg.readmit_s * 1e6:
                 del self.excluded[sensor]
                 self.detector.forget(sensor)        # a fresh test: what it summed while excluded is spent
-                events += [Cleared(t_us, self.gnss_index, sensor, c) for c in names]
+                if sensor in self._with_receiver:   # it raised no alarm: nothing to clear on a ground station
+                    self._with_receiver.discard(sensor)
+                else:
+                    events += [Cleared(t_us, self.gnss_index, sensor, c) for c in names]
                 fused = True
         if self.record_tests:
             events.insert(0, Tested(Innovation(t_us, sensor, names, r, S, fused), self.gnss_index, stat, thr))
