@@ -27,6 +27,9 @@ def summary(harness, tmp_path_factory):
                          "--detectors", "cusum", "gate", "--out", str(out), "--jobs", "2"]) == 0
     assert (out / "runs.csv").stat().st_size > 0 and (out / "delay_vs_step.png").stat().st_size > 0
     rows = json.loads((out / "summary.json").read_text())
+    # an earlier campaign summarised again from its runs.csv gives the same summary
+    assert harness.main(["--summarise", str(out)]) == 0
+    assert json.loads((out / "summary.json").read_text()) == rows
     return {(s["case"], s["detector"]): s for s in rows}
 
 

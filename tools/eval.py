@@ -183,6 +183,38 @@ def pct(values, q):
     return float(np.percentile(values, q)) if values else None
 
 
+def extrapolate(rs: list[dict]) -> float | None:
+    """Hours per false alarm at guard's threshold, extrapolated from clean runs: the rate of runs whose
+    peak statistic/threshold reaches a scale m, fitted log-linearly over m = 0.5 .. 0.85, at m = 1.
+    An extrapolation of the tail, not a measurement; None when too few runs come near the threshold."""
+    peaks = np.array([r["peak_ratio"] for r in rs if r["peak_ratio"] is not None])
+    hours = sum(r["hours"] for r in rs if r["peak_ratio"] is not None)
+    pts = [(m, (peaks >= m).sum() / hours) for m in np.arange(0.5, 0.851, 0.05)]
+    pts = [(m, rate) for m, rate in pts if rate > 0]
+    if len(pts) < 3:
+        return None
+    a, b = np.polyfit([m for m, _ in pts], [math.log10(rate) for _, rate in pts], 1)
+    return float(10.0 ** -(a + b))
+
+
+def read_runs(path: Path) -> list[dict]:
+    """runs.csv of an earlier campaign, typed back: numbers, booleans and empty fields (None)."""
+    def typed(v: str):
+        if v in ("", "None"):
+            return None
+        if v in ("True", "False"):
+            return v == "True"
+        try:
+            return int(v)
+        except ValueError:
+            try:
+                return float(v)
+            except ValueError:
+                return v
+    with open(path, newline="") as f:
+        return [{k: typed(v) for k, v in row.items()} for row in csv.DictReader(f)]
+
+
 def summarise(rows: list[dict], gnss_hz: float, arl0_samples: float) -> list[dict]:
     out = []
     keys = sorted({(r["family"], r["case"], r["detector"]) for r in rows}, key=lambda k: (k[0], k[1], k[2]))
@@ -205,7 +237,8 @@ def summarise(rows: list[dict], gnss_hz: float, arl0_samples: float) -> list[dic
              "worst_error_30s_after_m": max((r.get("error_30s_after_m") or 0.0 for r in rs), default=None),
              "clean_hours": hours if family == "clean" else None,
              "max_peak_ratio": max((r["peak_ratio"] for r in rs if r["peak_ratio"] is not None), default=None)
-             if family == "clean" else None}
+             if family == "clean" else None,
+             "extrapolated_fa_interval_h": extrapolate(rs) if family == "clean" else None}
         if family == "step":
             size = float(case.split()[2])
             S = statistics.median(r["S_pos"] for r in rs if r["S_pos"])
@@ -284,6 +317,7 @@ def main(argv=None) -> int:
     p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                    help="change one config key for every detector (a TOML value: 0.03, '\"air\"')")
+    p.add_argument("--summarise", metavar="DIR", help="summarise DIR/runs.csv of an earlier campaign again")
     p.add_argument("--figure", nargs=2, metavar=("CASE", "SEED"), help="simulate one run; keep its tlog, report, figure")
     args = p.parse_args(argv)
     if args.figure:
@@ -294,16 +328,23 @@ def main(argv=None) -> int:
         todo = [c for c in todo if c[0] != "step" or c[1].split()[2] in ("2", "10")]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory() as work:
-        try:                                             # a bad key stops here, named, before any work
-            detector_config("cusum", tuple(args.set))
-        except (ConfigError, tomllib.TOMLDecodeError) as e:
-            print(f"eval: --set: {e}", file=sys.stderr)
+    if args.summarise:
+        out = Path(args.summarise)
+        if not (out / "runs.csv").is_file():
+            print(f"eval: {out / 'runs.csv'}: no such file", file=sys.stderr)
             return 2
-        jobs = [(f, n, a, d, seed, args.detectors, work, tuple(args.set)) for f, n, a, d in todo
-                for seed in range(args.seeds)]
-        with ProcessPoolExecutor(max_workers=args.jobs) as pool:
-            rows = [r for rs in pool.map(one, jobs) for r in rs]
+        rows = read_runs(out / "runs.csv")
+    else:
+        with tempfile.TemporaryDirectory() as work:
+            try:                                             # a bad key stops here, named, before any work
+                detector_config("cusum", tuple(args.set))
+            except (ConfigError, tomllib.TOMLDecodeError) as e:
+                print(f"eval: --set: {e}", file=sys.stderr)
+                return 2
+            jobs = [(f, n, a, d, seed, args.detectors, work, tuple(args.set)) for f, n, a, d in todo
+                    for seed in range(args.seeds)]
+            with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+                rows = [r for rs in pool.map(one, jobs) for r in rs]
     cfg = detector_config("cusum").monitor.detector
     arl0 = cfg.false_alarm_interval_h * 3600 * 10.0      # in GNSS samples
     summary = summarise(rows, 10.0, arl0)
@@ -314,7 +355,7 @@ def main(argv=None) -> int:
     plots(summary, rows, out)
     cols = ["case", "detector", "detection_rate", "median_delay_samples", "p95_delay_samples",
             "false_alarms_per_h", "isolation_rate", "ambiguous_rate", "p95_error_at_alarm_m", "worst_error_30s_after_m",
-            "delay_over_lorden", "max_peak_ratio", "named"]
+            "delay_over_lorden", "max_peak_ratio", "extrapolated_fa_interval_h", "named"]
     print(" | ".join(cols))
     for s in summary:
         print(" | ".join("" if s.get(c) is None else (f"{s[c]:.2f}" if isinstance(s[c], float) else
