@@ -6,6 +6,7 @@ detectors side by side. Prints a table and writes CSV, JSON and figures.
     python tools/eval.py --families step ramp --seeds 10 --detectors cusum gate
     python tools/eval.py --figure "gyro z bias 0.05 rad/s" 3   # one run's tlog, report and figure
     python tools/eval.py --families imu --set filter.heading_sigma_rad=0.03   # a config key changed
+    python tools/eval.py --summarise out/eval-clean       # the table and figures of an earlier campaign again
 
 Families (each a list of cases, each case run over --seeds seeds, attack at t = 30 s unless said):
   step      GNSS position step of 1, 2, 5, 10, 20 m on north and east
@@ -26,7 +27,8 @@ apart; what it named is in runs.csv), the estimate's worst position error from t
 after it (GNSS attacks), and for steps the median delay over the Lorden bound ln(ARL0)/I, I = nu^2 / (2 S).
 For cusum, the largest statistic / threshold of each run (peak_ratio): over the clean runs it is the
 threshold's measured margin, and fa_vs_threshold.png shows the share of clean runs that would have
-alarmed had every threshold been scaled by a factor (an ROC-like curve, from clean runs only).
+alarmed had every threshold been scaled by a factor (an ROC-like curve, from clean runs only);
+extrapolated_fa_interval_h carries that curve's log-linear fit over 0.5..0.85 to the threshold.
 The route turns and changes speed (scenario `clean`), GNSS error is 0.3 m white + 0.7 m correlated.
 """
 
