@@ -103,15 +103,16 @@ class Monitor:
         self._imu_n = self._mag_n = 0
         self._imu_t: int | None = None              # time of the last fused IMU measurement
         self._last_fix: tuple | None = None         # (lat, lon, v_n, v_e) of the previous fix
-        # the two heading witnesses' recent residuals against the filter's heading, (r, sigma) in rad:
-        # the GNSS course (ground vehicles) and the magnetometer, over the last WITNESS_S seconds
+        # the heading witnesses against the filter's heading: the GNSS course (ground vehicles; 10 Hz
+        # GNSS assumed), (r, sigma) in rad over WITNESS_S; the magnetometer, (r, sigma, t_us, heading,
+        # yaw rate) over 2 WITNESS_S (the last half is the witness; the whole sizes a gyro's bias)
+        fuse_hz = self.cfg.imu_fusion_hz or 1000.0    # IMU fusions per second, at most
         self._course: deque = deque(maxlen=int(WITNESS_S * 10))
-        self._mag: deque = deque(maxlen=int(WITNESS_S * 50))
-        self._yaw: deque = deque(maxlen=100)         # (t_us, magnetometer heading, gyro yaw rate): the bias's size
+        self._mag: deque = deque(maxlen=int(2 * WITNESS_S * fuse_hz))
         # the filter before each GNSS epoch's fusion, (t_us, x, P), and every IMU fusion since,
         # (t_us, z, H, R, angle_rows): what a rewind needs
         self._epochs: deque = deque(maxlen=int(REWIND_S * 10))
-        self._imu_log: deque = deque(maxlen=int(REWIND_S * 50))
+        self._imu_log: deque = deque(maxlen=int(REWIND_S * fuse_hz))
         self._rewind_epochs = 0                     # a rewind owed: done at the next step, after the alarm is out
 
     # -- the step -----------------------------------------------------------------------------
@@ -202,12 +203,12 @@ class Monitor:
         cannot be told from a gyro bias, and an along-track GNSS velocity alarm never can be told from
         an accelerometer bias (a coordinated spoof looks the same): the alarm names both.
         """
-        def z(witness):
-            if len(witness) < witness.maxlen // 2:
+        def z(witness, n):
+            if len(witness) < n // 2:
                 return None
-            r, s = np.mean(witness, axis=0)
-            return r / s * math.sqrt(len(witness))
-        z_course, z_mag = z(self._course), z(self._mag)
+            r, s = np.mean([w[:2] for w in list(witness)[-n:]], axis=0)
+            return r / s * math.sqrt(min(n, len(witness)))
+        z_course, z_mag = z(self._course, self._course.maxlen), z(self._mag, self._mag.maxlen // 2)
         if z_course is None or z_mag is None:
             return sensor, AMBIGUOUS.get(sensor, ())
         if abs(z_course) >= COURSE_Z and abs(z_mag) >= WITNESS_Z and z_course * z_mag > 0:
@@ -239,7 +240,7 @@ class Monitor:
 
     def _gyro_bias(self) -> float:
         """The gyro's offset from the magnetometer: mean yaw rate minus the slope of the heading (last 2 s)."""
-        t, heading, rate = np.array(self._yaw).T
+        t, heading, rate = np.array([m[2:] for m in self._mag]).T
         return float(np.mean(rate) - np.polyfit((t - t[0]) / 1e6, np.unwrap(heading), 1)[0])
 
     def _freeze(self, fix: GnssFix) -> list[Event]:
@@ -308,8 +309,7 @@ class Monitor:
         z = np.array(z)
         r, S, PHT = self.ekf.innovation(z, H @ self.ekf.x, H, R, angle_rows=(0,) if heading is not None else ())
         if heading is not None:
-            self._mag.append((r[0], math.sqrt(S[0, 0])))
-            self._yaw.append((s.t_us, heading, rate))
+            self._mag.append((r[0], math.sqrt(S[0, 0]), s.t_us, heading, rate))
         # one stacked update, tested sensor by sensor
         events: list[Event] = []
         keep: list[int] = []
