@@ -15,9 +15,9 @@ following the attack. It is re-admitted (Cleared) when its normalised innovation
 within `readmit_sigma` for `readmit_s` seconds. GNSS position and velocity come from one receiver
 and go together; a position is not re-admitted while its velocity is still out.
 
-Which sensor an alarm names (`_isolate`): a heading alarm (magnetometer, GNSS velocity) is weighed
-against the two heading witnesses, the magnetometer and, on a ground vehicle, the GNSS course; both
-against the filter's heading means the gyro bent it. A ground vehicle (`vehicle`, from the
+Which sensor an alarm names (`_isolate`): a heading alarm (magnetometer, GNSS velocity) compares
+how three sources turned: the gyro, the magnetometer and, on a ground vehicle, the GNSS course; the
+magnetometer and the course alike against the gyro means the gyro bent the heading. A ground vehicle (`vehicle`, from the
 autopilot's HEARTBEAT by default) also has v_y = 0 fused with every IMU update.
 """
 
@@ -30,15 +30,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .detectors import DetectorConfig, make_detector
-from .ekf import (H_IMU, H_IMU_GROUND, H_IMU_NO_MAG, H_IMU_NO_MAG_GROUND, H_POS, N_STATES, TH, VX, VY, FilterConfig,
-                  NavEKF, gnss_velocity_model)
+from .ekf import (BW, H_IMU, H_IMU_GROUND, H_IMU_NO_MAG, H_IMU_NO_MAG_GROUND, H_POS, N_STATES, TH, VX, VY,
+                  FilterConfig, NavEKF, gnss_velocity_model)
 from .events import AMBIGUOUS, CHANNELS, Alarm, Cleared, Estimate, Event, Innovation, Notice, Tested
 from .geo import LocalFrame, declination_rad
 from .samples import Attitude, GnssFix, ImuSample, VehicleType
 
 WITNESS_S = 1.0        # s of heading-witness residuals weighed when a heading alarm is isolated
-WITNESS_Z = 2.0        # a witness disagrees with the filter when its mean residual is this many standard errors ...
-COURSE_Z = 1.0         # ... the GNSS course, already pulled towards the filter by its own fusion, this many
+WITNESS_Z = 2.0        # a witness disagrees with the filter when its mean residual is this many standard errors
+TURN_Z = (3.0, 2.0)    # two heading sources turned differently beyond the first, alike within the second (z)
 RECEIVER = ("gnss_pos", "gnss_vel")                 # one receiver: excluded together
 REWIND_S = 20.0        # s of filter history kept to undo what a GNSS attack fed the filter before its alarm
 # rows of the stacked IMU measurement that belong to each sensor: (sensor, first, last + 1)
@@ -103,11 +103,11 @@ class Monitor:
         self._imu_n = self._mag_n = 0
         self._imu_t: int | None = None              # time of the last fused IMU measurement
         self._last_fix: tuple | None = None         # (lat, lon, v_n, v_e) of the previous fix
-        # the heading witnesses against the filter's heading: the GNSS course (ground vehicles; 10 Hz
-        # GNSS assumed), (r, sigma) in rad over WITNESS_S; the magnetometer, (r, sigma, t_us, heading,
-        # yaw rate) over 2 WITNESS_S (the last half is the witness; the whole sizes a gyro's bias)
+        # the heading witnesses over 2 WITNESS_S, each (r, sigma, t_us, heading, yaw rate or speed): the
+        # GNSS course (ground vehicles; 10 Hz GNSS assumed) and the magnetometer, r and sigma against the
+        # filter's heading (the last half weighed); the whole window compares how each source turned
         fuse_hz = self.cfg.imu_fusion_hz or 1000.0    # IMU fusions per second, at most
-        self._course: deque = deque(maxlen=int(WITNESS_S * 10))
+        self._course: deque = deque(maxlen=int(2 * WITNESS_S * 10))
         self._mag: deque = deque(maxlen=int(2 * WITNESS_S * fuse_hz))
         # the filter before each GNSS epoch's fusion, (t_us, x, P), and every IMU fusion since,
         # (t_us, z, H, R, angle_rows): what a rewind needs
@@ -191,31 +191,53 @@ class Monitor:
             return
         x = self.ekf.x
         r = math.remainder(math.atan2(fix.vel_n_mps, fix.vel_e_mps) - x[TH] - math.atan2(x[VY], x[VX]), math.tau)
-        self._course.append((r, math.sqrt((self.cfg.filter.gnss_vel_sigma_mps / speed) ** 2 + self.ekf.P[TH, TH])))
+        self._course.append((r, math.sqrt((self.cfg.filter.gnss_vel_sigma_mps / speed) ** 2 + self.ekf.P[TH, TH]),
+                             fix.t_us, math.atan2(fix.vel_n_mps, fix.vel_e_mps), speed))
 
     def _isolate(self, sensor: str) -> tuple[str, tuple[str, ...]]:
         """Which sensor a heading alarm (magnetometer, GNSS velocity) names, and what it cannot rule out.
 
-        Two witnesses see the heading: the magnetometer and, on a ground vehicle at speed, the GNSS
-        course. When both disagree with the filter's heading, in the same direction, the heading the
-        gyro propagated is what is wrong: the gyro is named. When only the alarmed one disagrees, it
-        is named alone. Without the second witness (in the air, standing still) a magnetometer alarm
-        cannot be told from a gyro bias, and an along-track GNSS velocity alarm never can be told from
-        an accelerometer bias (a coordinated spoof looks the same): the alarm names both.
+        Three sources see the heading turn: the gyro, the magnetometer and, on a ground vehicle at
+        speed, the GNSS course. When the magnetometer and the course turned alike over the last
+        2 WITNESS_S and the gyro turned differently from both, the gyro is named. Otherwise the alarmed
+        sensor is named; a GNSS velocity alone when its course disagrees with the filter's heading.
+        Without the course (in the air, standing still) a magnetometer alarm cannot be told from a
+        gyro bias, and an along-track GNSS velocity alarm never can be told from an accelerometer bias
+        (a coordinated spoof looks the same): the alarm names both.
         """
-        def z(witness, n):
-            if len(witness) < n // 2:
-                return None
-            r, s = np.mean([w[:2] for w in list(witness)[-n:]], axis=0)
-            return r / s * math.sqrt(min(n, len(witness)))
-        z_course, z_mag = z(self._course, self._course.maxlen), z(self._mag, self._mag.maxlen // 2)
-        if z_course is None or z_mag is None:
+        turns = self._turns()
+        if turns is None:
             return sensor, AMBIGUOUS.get(sensor, ())
-        if abs(z_course) >= COURSE_Z and abs(z_mag) >= WITNESS_Z and z_course * z_mag > 0:
+        z_gm, z_gc, z_mc = turns
+        if min(abs(z_gm), abs(z_gc)) >= TURN_Z[0] and abs(z_mc) < TURN_Z[1]:
             return "gyro", ()
         if sensor == "mag":
             return "mag", ()
-        return sensor, (() if abs(z_course) >= WITNESS_Z else AMBIGUOUS.get(sensor, ()))
+        n = self._course.maxlen // 2
+        r, s = np.mean([w[:2] for w in list(self._course)[-n:]], axis=0)
+        return sensor, (() if abs(r / s) * math.sqrt(n) >= WITNESS_Z else AMBIGUOUS.get(sensor, ()))
+
+    def _turns(self) -> tuple[float, float, float] | None:
+        """How differently the heading sources turned over the last 2 WITNESS_S, as z-scores of the
+        slope of their differences: (gyro - magnetometer, gyro - course, magnetometer - course).
+        The gyro's heading is its yaw rate, less the filter's bias, integrated. None without the course."""
+        if len(self._course) < self._course.maxlen // 2 or len(self._mag) < self._mag.maxlen // 2:
+            return None
+        t, heading, rate = np.array([m[2:] for m in self._mag]).T
+        course = [c[2:] for c in self._course if c[2] >= t[0]]
+        if len(course) < self._course.maxlen // 2:
+            return None
+        tc, course, speed = np.array(course).T
+        t, tc = (t - t[0]) / 1e6, (tc - t[0]) / 1e6
+        gyro = np.cumsum((rate - self.ekf.x[BW]) * np.diff(t, prepend=0.0))
+
+        def slope(tt, y, sigma):                   # least-squares slope and its standard error
+            d = tt - tt.mean()
+            return float(d @ y) / float(d @ d), sigma / math.sqrt(float(d @ d))
+        f = self.cfg.filter
+        s_gm, e_gm = slope(t, gyro - np.unwrap(heading), f.heading_sigma_rad)
+        s_gc, e_gc = slope(tc, np.interp(tc, t, gyro) - np.unwrap(course), f.gnss_vel_sigma_mps / speed.min())
+        return s_gm / e_gm, s_gc / e_gc, (s_gc - s_gm) / math.hypot(e_gm, e_gc)
 
     def _rewind(self, epochs: int) -> None:
         """Undo the last `epochs` GNSS epochs: back to the filter before the attack's first sample was

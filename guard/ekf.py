@@ -55,7 +55,7 @@ class FilterConfig:
 
     gnss_pos_sigma_m: float = 0.35
     gnss_vel_sigma_mps: float = 0.06
-    heading_sigma_rad: float = 0.05
+    heading_sigma_rad: float = 0.03
     heading_lag_s: float = 0.1        # timing uncertainty of the magnetometer: adds (yaw rate * lag)^2 to R
     gyro_sigma_radps: float = 0.01
     accel_sigma_mps2: float = 0.15
