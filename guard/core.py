@@ -13,7 +13,8 @@ A sensor whose test rejects H0 raises an Alarm and is then excluded: its innovat
 formed and tested, but no longer fused, so the estimate rides on the other sensors instead of
 following the attack. It is re-admitted (Cleared) when its normalised innovations have stayed
 within `readmit_sigma` for `readmit_s` seconds. GNSS position and velocity come from one receiver
-and go together; a position is not re-admitted while its velocity is still out.
+and go together; a position is not re-admitted while its velocity is still out. A gyro waits until
+its heading turns with the magnetometer's again (its own innovation agrees as soon as it is out).
 
 Which sensor an alarm names (`_isolate`): a heading alarm (magnetometer, GNSS velocity) compares
 how three sources turned: the gyro, the magnetometer and, on a ground vehicle, the GNSS course; the
@@ -206,7 +207,7 @@ class Monitor:
         (a coordinated spoof looks the same): the alarm names both.
         """
         turns = self._turns()
-        if turns is None:
+        if turns is None or turns[1] is None:
             return sensor, AMBIGUOUS.get(sensor, ())
         z_gm, z_gc, z_mc = turns
         if min(abs(z_gm), abs(z_gc)) >= TURN_Z[0] and abs(z_mc) < TURN_Z[1]:
@@ -217,18 +218,15 @@ class Monitor:
         r, s = np.mean([w[:2] for w in list(self._course)[-n:]], axis=0)
         return sensor, (() if abs(r / s) * math.sqrt(n) >= WITNESS_Z else AMBIGUOUS.get(sensor, ()))
 
-    def _turns(self) -> tuple[float, float, float] | None:
+    def _turns(self) -> tuple[float, float | None, float | None] | None:
         """How differently the heading sources turned over the last 2 WITNESS_S, as z-scores of the
-        slope of their differences: (gyro - magnetometer, gyro - course, magnetometer - course).
-        The gyro's heading is its yaw rate, less the filter's bias, integrated. None without the course."""
-        if len(self._course) < self._course.maxlen // 2 or len(self._mag) < self._mag.maxlen // 2:
+        slope of their differences: (gyro - magnetometer, gyro - course, magnetometer - course), the
+        last two None without the course; None without the magnetometer. The gyro's heading is its
+        yaw rate, less the filter's bias, integrated."""
+        if len(self._mag) < self._mag.maxlen // 2:
             return None
         t, heading, rate = np.array([m[2:] for m in self._mag]).T
-        course = [c[2:] for c in self._course if c[2] >= t[0]]
-        if len(course) < self._course.maxlen // 2:
-            return None
-        tc, course, speed = np.array(course).T
-        t, tc = (t - t[0]) / 1e6, (tc - t[0]) / 1e6
+        t0, t = t[0], (t - t[0]) / 1e6
         gyro = np.cumsum((rate - self.ekf.x[BW]) * np.diff(t, prepend=0.0))
 
         def slope(tt, y, sigma):                   # least-squares slope and its standard error
@@ -236,6 +234,11 @@ class Monitor:
             return float(d @ y) / float(d @ d), sigma / math.sqrt(float(d @ d))
         f = self.cfg.filter
         s_gm, e_gm = slope(t, gyro - np.unwrap(heading), f.heading_sigma_rad)
+        course = [c[2:] for c in self._course if c[2] >= t0]
+        if len(course) < self._course.maxlen // 2:
+            return s_gm / e_gm, None, None
+        tc, course, speed = np.array(course).T
+        tc = (tc - t0) / 1e6
         s_gc, e_gc = slope(tc, np.interp(tc, t, gyro) - np.unwrap(course), f.gnss_vel_sigma_mps / speed.min())
         return s_gm / e_gm, s_gc / e_gc, (s_gc - s_gm) / math.hypot(e_gm, e_gc)
 
@@ -419,6 +422,8 @@ class Monitor:
             z = np.abs(r) / np.sqrt(np.diagonal(S))
             if hits or np.any(z > self.cfg.readmit_sigma):
                 self.excluded[sensor] = t_us        # still inconsistent
+            elif sensor == "gyro" and abs((self._turns() or (0.0,))[0]) >= TURN_Z[1]:
+                self.excluded[sensor] = t_us        # its heading still turns away from the magnetometer's
             elif sensor == "gnss_pos" and "gnss_vel" in self.excluded:
                 # a receiver whose velocity is still judged attacked: its position waits. (The filter's own
                 # uncertainty grows while both are out, which would let a spoofed position "agree".)
