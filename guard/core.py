@@ -18,8 +18,9 @@ its heading turns with the magnetometer's again (its own innovation agrees as so
 
 Which sensor an alarm names (`_isolate`): a heading alarm (magnetometer, GNSS velocity) compares
 how three sources turned: the gyro, the magnetometer and, on a ground vehicle, the GNSS course; the
-magnetometer and the course alike against the gyro means the gyro bent the heading. A ground vehicle (`vehicle`, from the
-autopilot's HEARTBEAT by default) also has v_y = 0 fused with every IMU update.
+magnetometer and the course alike against the gyro means the gyro bent the heading. A ground
+vehicle (`vehicle`, from the autopilot's HEARTBEAT by default) also has v_y = 0 fused with every
+IMU update.
 """
 
 from __future__ import annotations
@@ -104,9 +105,9 @@ class Monitor:
         self._imu_n = self._mag_n = 0
         self._imu_t: int | None = None              # time of the last fused IMU measurement
         self._last_fix: tuple | None = None         # (lat, lon, v_n, v_e) of the previous fix
-        # the heading witnesses over 2 WITNESS_S, each (r, sigma, t_us, heading, yaw rate or speed): the
-        # GNSS course (ground vehicles; 10 Hz GNSS assumed) and the magnetometer, r and sigma against the
-        # filter's heading (the last half weighed); the whole window compares how each source turned
+        # the heading sources over 2 WITNESS_S: the GNSS course (ground vehicles, at speed; 10 Hz GNSS
+        # assumed), (r, sigma) against the filter's heading and (t_us, course, speed); the magnetometer,
+        # (t_us, heading, yaw rate)
         fuse_hz = self.cfg.imu_fusion_hz or 1000.0    # IMU fusions per second, at most
         self._course: deque = deque(maxlen=int(2 * WITNESS_S * 10))
         self._mag: deque = deque(maxlen=int(2 * WITNESS_S * fuse_hz))
@@ -225,7 +226,7 @@ class Monitor:
         yaw rate, less the filter's bias, integrated."""
         if len(self._mag) < self._mag.maxlen // 2:
             return None
-        t, heading, rate = np.array([m[2:] for m in self._mag]).T
+        t, heading, rate = np.array(self._mag).T
         t0, t = t[0], (t - t[0]) / 1e6
         gyro = np.cumsum((rate - self.ekf.x[BW]) * np.diff(t, prepend=0.0))
 
@@ -265,7 +266,7 @@ class Monitor:
 
     def _gyro_bias(self) -> float:
         """The gyro's offset from the magnetometer: mean yaw rate minus the slope of the heading (last 2 s)."""
-        t, heading, rate = np.array([m[2:] for m in self._mag]).T
+        t, heading, rate = np.array(self._mag).T
         return float(np.mean(rate) - np.polyfit((t - t[0]) / 1e6, np.unwrap(heading), 1)[0])
 
     def _freeze(self, fix: GnssFix) -> list[Event]:
@@ -334,7 +335,7 @@ class Monitor:
         z = np.array(z)
         r, S, PHT = self.ekf.innovation(z, H @ self.ekf.x, H, R, angle_rows=(0,) if heading is not None else ())
         if heading is not None:
-            self._mag.append((r[0], math.sqrt(S[0, 0]), s.t_us, heading, rate))
+            self._mag.append((s.t_us, heading, rate))
         # one stacked update, tested sensor by sensor
         events: list[Event] = []
         keep: list[int] = []

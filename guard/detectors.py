@@ -116,29 +116,29 @@ class PageCusum:
             chans = self.state[sensor] = [_Page(nk) for _ in range(len(r))]
         hs = self._h(sensor, t_us)
         stat, thr, alarms = [], [], []
-        for i, (ri, si) in enumerate(zip(r.tolist(), np.diagonal(S).tolist())):
+        for i, (ri, si) in enumerate(zip(r.tolist(), S.diagonal().tolist())):
             c = chans[i]
             z = ri / math.sqrt(si)
-            best, best_j = -1.0, 0
+            best, best_j, best_g = -1.0, 0, 0.0
             for j, k in enumerate(self.ks):
                 # g+ = max(0, g+ + z - k),  g- = max(0, g- - z - k)
                 gp = c.gp[j] + z - k
                 if gp > 0.0:
                     c.gp[j] = gp; c.sum_p[j] += ri; c.cnt_p[j] += 1
                 else:
-                    c.gp[j] = c.sum_p[j] = 0.0; c.cnt_p[j] = 0
+                    gp = c.gp[j] = c.sum_p[j] = 0.0; c.cnt_p[j] = 0
                 gn = c.gn[j] - z - k
                 if gn > 0.0:
                     c.gn[j] = gn; c.sum_n[j] += ri; c.cnt_n[j] += 1
                 else:
-                    c.gn[j] = c.sum_n[j] = 0.0; c.cnt_n[j] = 0
-                ratio = max(c.gp[j], c.gn[j]) / hs[j]
-                if ratio > best:
-                    best, best_j = ratio, j
+                    gn = c.gn[j] = c.sum_n[j] = 0.0; c.cnt_n[j] = 0
+                g = gp if gp > gn else gn
+                if g / hs[j] > best:
+                    best, best_j, best_g = g / hs[j], j, g
             j = best_j
             if best > self.peak.get(sensor, 0.0):
                 self.peak[sensor] = best
-            stat.append(max(c.gp[j], c.gn[j]))
+            stat.append(best_g)
             thr.append(hs[j])
             if best > 1.0:
                 up = c.gp[j] >= c.gn[j]
@@ -236,7 +236,7 @@ class Gate:
     def test(self, sensor: str, t_us: int, r: np.ndarray, S: np.ndarray):
         g, stat, alarms = self.cfg.gate_sigma, [], []
         persist = self.cfg.gate_persist_s * 1e6
-        for i, (ri, si) in enumerate(zip(r.tolist(), np.diagonal(S).tolist())):
+        for i, (ri, si) in enumerate(zip(r.tolist(), S.diagonal().tolist())):
             z = abs(ri) / math.sqrt(si)
             key = (sensor, i)
             if z <= g:

@@ -93,6 +93,7 @@ class NavEKF:
         self.c = 1.0 if cfg.centripetal else 0.0
         self._F = np.eye(N_STATES)
         self._I = np.eye(N_STATES)
+        self._diag = np.diag_indices(N_STATES)
 
     def predict(self, T: float) -> None:
         """Propagate by T seconds: x = f(x), P = F P Fᵀ + Q."""
@@ -115,7 +116,7 @@ class NavEKF:
         x[VY] += T * (ay - c * w * vx)
         # P = F P Fᵀ + Q,  Q = q T
         self.P = F @ self.P @ F.T
-        self.P[np.diag_indices(N_STATES)] += self.q * T
+        self.P[self._diag] += self.q * T
 
     def innovation(self, z: np.ndarray, hx: np.ndarray, H: np.ndarray, R: np.ndarray,
                    angle_rows: tuple[int, ...] = ()) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -138,7 +139,7 @@ class NavEKF:
         self.x += K @ r
         self.x[TH] = math.remainder(self.x[TH], math.tau)
         I_KH = self._I - K @ H
-        self.P = I_KH @ self.P @ I_KH.T + (K * np.diagonal(R)) @ K.T     # R is diagonal
+        self.P = I_KH @ self.P @ I_KH.T + (K * R.diagonal()) @ K.T     # R is diagonal
 
 
 # Measurement models: (h(x), H) for each sensor.
