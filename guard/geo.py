@@ -15,9 +15,13 @@ class LocalFrame:
 
     def __init__(self, lat_deg: float, lon_deg: float, alt_m: float):
         self.lat0, self.lon0, self.alt0 = lat_deg, lon_deg, alt_m
+        self._ecef0 = pymap3d.geodetic2ecef(lat_deg, lon_deg, alt_m)
 
     def to_en(self, lat_deg: float, lon_deg: float) -> tuple[float, float]:
-        e, n, _ = pymap3d.geodetic2enu(lat_deg, lon_deg, self.alt0, self.lat0, self.lon0, self.alt0)
+        """pymap3d's geodetic2enu, with the origin's ECEF computed once."""
+        x, y, z = pymap3d.geodetic2ecef(lat_deg, lon_deg, self.alt0)
+        x0, y0, z0 = self._ecef0
+        e, n, _ = pymap3d.uvw2enu(x - x0, y - y0, z - z0, self.lat0, self.lon0)
         return float(e), float(n)
 
 
