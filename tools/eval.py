@@ -195,11 +195,11 @@ def pct(values, q):
 def extrapolate(rs: list[dict]) -> float | None:
     """Hours per false alarm at guard's threshold, extrapolated from clean runs: the rate of runs whose
     peak statistic/threshold reaches a scale m, fitted log-linearly over m = 0.5 .. 0.85, at m = 1.
-    An extrapolation of the tail, not a measurement; None when too few runs come near the threshold."""
+    An extrapolation of the tail, not a measurement; None unless 3 runs reach each of 3 scales or more."""
     peaks = np.array([r["peak_ratio"] for r in rs if r["peak_ratio"] is not None])
     hours = sum(r["hours"] for r in rs if r["peak_ratio"] is not None)
-    pts = [(m, (peaks >= m).sum() / hours) for m in np.arange(0.5, 0.851, 0.05)]
-    pts = [(m, rate) for m, rate in pts if rate > 0]
+    # a scale counts when at least 3 runs reach it: a rate from one or two runs is noise
+    pts = [(m, (peaks >= m).sum() / hours) for m in np.arange(0.5, 0.851, 0.05) if (peaks >= m).sum() >= 3]
     if len(pts) < 3:
         return None
     a, b = np.polyfit([m for m, _ in pts], [math.log10(rate) for _, rate in pts], 1)
