@@ -77,3 +77,15 @@ def test_delay_is_near_the_lorden_bound_for_steps(summary):
         s = summary[(f"step {ch} 2 m", "cusum")]
         assert s["lorden_bound_samples"] > 0
         assert s["delay_over_lorden"] <= 2.0
+
+
+def test_false_alarm_extrapolation_follows_the_tail_and_declines_too_few_runs(harness):
+    """Runs of one hour whose peaks fall off tenfold per 0.2 of scale from half of them at 0.5:
+    carried to the threshold that is one run in 632 hours. Ten runs are too few to say anything."""
+    import math
+    n = 1000
+    peaks = [0.5 + math.log10(0.5 / u) / 5 if u < 0.5 else 0.3 for u in ((i + 0.5) / n for i in range(n))]
+    rows = [{"peak_ratio": p, "hours": 1.0} for p in peaks]
+    expected = 1 / (0.5 * 10 ** -2.5)
+    assert harness.extrapolate(rows) == pytest.approx(expected, rel=0.2)
+    assert harness.extrapolate(rows[::100]) is None
