@@ -38,7 +38,7 @@ from .events import AMBIGUOUS, CHANNELS, Alarm, Cleared, Estimate, Event, Innova
 from .geo import LocalFrame, declination_rad
 from .samples import Attitude, GnssFix, ImuSample, VehicleType
 
-WITNESS_S = 1.0        # s of heading-witness residuals weighed when a heading alarm is isolated
+WITNESS_S = 1.0        # s of course residuals weighed when a heading alarm is isolated; turns compared over 2x
 WITNESS_Z = 2.0        # a witness disagrees with the filter when its mean residual is this many standard errors
 TURN_Z = (3.0, 2.0)    # two heading sources turned differently beyond the first, alike within the second (z)
 RECEIVER = ("gnss_pos", "gnss_vel")                 # one receiver: excluded together
@@ -191,10 +191,10 @@ class Monitor:
         if not self.ground or speed < 2.0 * self.cfg.freeze_speed_mps:
             self._course.clear()
             return
-        x = self.ekf.x
-        r = math.remainder(math.atan2(fix.vel_n_mps, fix.vel_e_mps) - x[TH] - math.atan2(x[VY], x[VX]), math.tau)
+        x, course = self.ekf.x, math.atan2(fix.vel_n_mps, fix.vel_e_mps)
+        r = math.remainder(course - x[TH] - math.atan2(x[VY], x[VX]), math.tau)
         self._course.append((r, math.sqrt((self.cfg.filter.gnss_vel_sigma_mps / speed) ** 2 + self.ekf.P[TH, TH]),
-                             fix.t_us, math.atan2(fix.vel_n_mps, fix.vel_e_mps), speed))
+                             fix.t_us, course, speed))
 
     def _isolate(self, sensor: str) -> tuple[str, tuple[str, ...]]:
         """Which sensor a heading alarm (magnetometer, GNSS velocity) names, and what it cannot rule out.
