@@ -106,6 +106,7 @@ def _check(cfg: Config, where: str) -> None:
         "can.imu_node_id": (cfg.can.imu_node_id > 127, "must be 0..127"),
         "can.time_source": (cfg.can.time_source not in ("message", "receive"), "must be \"message\" or \"receive\""),
         "monitor.readmit_s": (cfg.monitor.readmit_s <= 0, "must be > 0"),
+        "filter.gnss_delay_s": (flt.gnss_delay_s > 1.0, "must be at most 1 s (receivers lag 0.05 to 0.25 s)"),
         "monitor.vehicle": (cfg.monitor.vehicle not in ("auto", "ground", "air"),
                             "must be \"auto\", \"ground\" or \"air\""),
     }

@@ -115,6 +115,8 @@ class Monitor:
         # (t_us, z, H, R, angle_rows): what a rewind needs
         self._epochs: deque = deque(maxlen=int(REWIND_S * 10))
         self._imu_log: deque = deque(maxlen=int(REWIND_S * fuse_hz))
+        # with a receiver latency: the filter's state after each IMU fusion, (t_us, x), back to the latency
+        self._states: deque = deque(maxlen=int((self.cfg.filter.gnss_delay_s + 1.0) * fuse_hz) + 2)
         self._rewind_epochs = 0                     # a rewind owed: done at the next step, after the alarm is out
 
     # -- the step -----------------------------------------------------------------------------
@@ -173,28 +175,52 @@ class Monitor:
         ekf = self.ekf
         self._epochs.append((fix.t_us, ekf.x.copy(), ekf.P.copy()))
         events += self._freeze(fix)
+        delayed = self.cfg.filter.gnss_delay_s > 0
+        xd = self._delayed(fix.t_us) if delayed else ekf.x     # the state the fix shows
+        before = ekf.x.copy() if delayed else None
         e, n = self.frame.to_en(fix.lat_deg, fix.lon_deg)
-        events += self._measure("gnss_pos", fix.t_us, np.array([e, n]), ekf.x[:2].copy(), H_POS, self.R_pos)
+        events += self._measure("gnss_pos", fix.t_us, np.array([e, n]), xd[:2].copy(), H_POS, self.R_pos)
         if self.cfg.filter.use_gnss_velocity and fix.vel_n_mps is not None:
-            self._witness_course(fix)
-            hx, H = gnss_velocity_model(ekf.x)
+            self._witness_course(fix, xd)
+            hx, H = gnss_velocity_model(xd)
             events += self._measure("gnss_vel", fix.t_us, np.array([fix.vel_e_mps, fix.vel_n_mps]), hx, H,
                                     self.R_vel)
+        if delayed:                 # the correction applies to the stored states too: the next fix sees it
+            dx = ekf.x - before
+            dx[TH] = math.remainder(dx[TH], math.tau)
+            for _, x in self._states:
+                x += dx
         x, f = ekf.x, self.frame
         events.append(Estimate(fix.t_us, self.gnss_index, float(x[0]), float(x[1]), float(x[TH]), x.copy(),
                                np.diagonal(ekf.P).copy(), (f.lat0, f.lon0, f.alt0)))
         return events
 
-    def _witness_course(self, fix: GnssFix) -> None:
-        """The GNSS course against the filter's (ground vehicles, at speed): a witness of the heading."""
+    def _delayed(self, t_us: int) -> np.ndarray:
+        """The filter's state gnss_delay_s before t_us, interpolated between the stored IMU-fusion states
+        (the current state last). The innovation is formed against it and the correction applied to
+        the current state with the current P (a delayed fix's usual approximation)."""
+        then = t_us - self.cfg.filter.gnss_delay_s * 1e6
+        states = self._states
+        while len(states) > 1 and states[1][0] <= then:
+            states.popleft()
+        pts = [*states, (self.t_us, self.ekf.x)]
+        for (t0, x0), (t1, x1) in zip(pts, pts[1:]):
+            if t0 <= then < t1:
+                dx = x1 - x0
+                dx[TH] = math.remainder(dx[TH], math.tau)
+                return x0 + dx * ((then - t0) / (t1 - t0))
+        return pts[0][1].copy()     # older than the history (the first fixes): the oldest state there is
+
+    def _witness_course(self, fix: GnssFix, x: np.ndarray) -> None:
+        """The GNSS course against the filter's heading x (ground vehicles, at speed): a witness of the heading."""
         speed = math.hypot(fix.vel_e_mps, fix.vel_n_mps)
         if not self.ground or speed < 2.0 * self.cfg.freeze_speed_mps:
             self._course.clear()
             return
-        x, course = self.ekf.x, math.atan2(fix.vel_n_mps, fix.vel_e_mps)
+        course = math.atan2(fix.vel_n_mps, fix.vel_e_mps)
         r = math.remainder(course - x[TH] - math.atan2(x[VY], x[VX]), math.tau)
         self._course.append((r, math.sqrt((self.cfg.filter.gnss_vel_sigma_mps / speed) ** 2 + self.ekf.P[TH, TH]),
-                             fix.t_us, course, speed))
+                             fix.t_us - int(self.cfg.filter.gnss_delay_s * 1e6), course, speed))
 
     def _isolate(self, sensor: str) -> tuple[str, tuple[str, ...]]:
         """Which sensor a heading alarm (magnetometer, GNSS velocity) names, and what it cannot rule out.
@@ -252,6 +278,7 @@ class Monitor:
             return
         t0, x, P = self._epochs[-epochs]
         now, ekf = self.t_us, self.ekf
+        delayed, states = self.cfg.filter.gnss_delay_s > 0, [(t0, x.copy())]   # with a receiver latency: re-run states
         ekf.x, ekf.P, t = x.copy(), P.copy(), t0
         for t_imu, z, H, R, angle in self._imu_log:
             if t_imu <= t0:
@@ -260,9 +287,14 @@ class Monitor:
             t = t_imu
             r, S, PHT = ekf.innovation(z, H @ ekf.x, H, R, angle_rows=angle)
             ekf.fuse(r, S, H, R, PHT)
+            if delayed:
+                states.append((t_imu, ekf.x.copy()))
         ekf.predict((now - t) / 1e6)
         self._epochs.clear()
         self._imu_log.clear()
+        if delayed:
+            self._states.clear()
+            self._states.extend(states)
 
     def _gyro_bias(self) -> float:
         """The gyro's offset from the magnetometer: mean yaw rate minus the slope of the heading (last 2 s)."""
@@ -354,6 +386,8 @@ class Monitor:
             ix = np.ix_(keep, keep)
             self.ekf.fuse(r[keep], S[ix], H[keep], R[ix], PHT[:, keep])
             self._imu_log.append((s.t_us, z[keep], H[keep], R[ix], angle if keep[0] == 0 else ()))
+        if self.cfg.filter.gnss_delay_s > 0:
+            self._states.append((s.t_us, self.ekf.x.copy()))
         return events
 
     def _heading(self, mx: float, my: float) -> float:

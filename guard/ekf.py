@@ -57,6 +57,7 @@ class FilterConfig:
     gnss_vel_sigma_mps: float = 0.06
     heading_sigma_rad: float = 0.03
     heading_lag_s: float = 0.1        # timing uncertainty of the magnetometer: adds (yaw rate * lag)^2 to R
+    gnss_delay_s: float = 0.0         # the receiver's latency: a fix is compared with the state this long before it
     gyro_sigma_radps: float = 0.01
     accel_sigma_mps2: float = 0.15
     lateral_sigma_mps: float = 0.1    # ground vehicles: sideways body velocity (skid), the v_y = 0 pseudo-measurement

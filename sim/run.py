@@ -7,10 +7,12 @@ IMU sample is sent before the GNSS sample.
 
 from __future__ import annotations
 
+import copy
 import json
 import logging
 import math
 import time
+from collections import deque
 from dataclasses import asdict
 
 import pymap3d
@@ -69,6 +71,9 @@ class Simulation:
         self.vehicle = Vehicle(scenario.route, scenario.start.heading_deg)
         self.trajectory = {"t_usec": [], "lat_deg": [], "lon_deg": [], "east_m": [], "north_m": [], "yaw_rad": [],
                            "speed_mps": []}
+        # a receiver with latency reports the vehicle as it was gnss_delay_s ago: the states since then
+        delay = scenario.noise.gnss_delay_s
+        self.past = deque([(0.0, copy.copy(self.vehicle.s))]) if delay > 0 else None
 
     def ticks(self):
         """Yield (t_us, [messages]) in time order, advancing the vehicle between ticks.
@@ -106,12 +111,20 @@ class Simulation:
                 fn = fed[1] + age * s.v * math.sin(s.psi)
                 veh.step(dt, *veh.command(fe, fn))
                 t_s += dt
+                if self.past is not None:
+                    self.past.append((t_s, copy.copy(veh.s)))
             t_us = next_us
 
     def _gnss(self, t_us: int, s):
         """One GNSS sample (and the truth beside it) as GPS_RAW_INT."""
         sc, st, n = self.scenario, self.scenario.start, self.scenario.noise
-        g = self.sensors.gnss(t_us / 1e6, s)
+        seen = s
+        if self.past is not None:      # the latest state no later than t - delay (at the physics step)
+            then, past = t_us / 1e6 - n.gnss_delay_s + 1e-9, self.past
+            while len(past) > 1 and past[1][0] <= then:
+                past.popleft()
+            seen = past[0][1]
+        g = self.sensors.gnss(t_us / 1e6, seen)
         self.last_gnss = (g.east_m, g.north_m)
         lat, lon, alt = pymap3d.enu2geodetic(g.east_m, g.north_m, 0.0, st.lat_deg, st.lon_deg, st.alt_m)
         tlat, tlon, _ = pymap3d.enu2geodetic(s.e, s.n, 0.0, st.lat_deg, st.lon_deg, st.alt_m)
