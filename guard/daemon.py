@@ -25,6 +25,7 @@ from .config import Config
 from .core import Monitor
 from .errors import SourceError
 from .events import UNITS, Alarm, Cleared, Notice
+from .samples import GnssFix, ImuSample
 from .link import MavlinkLink
 from .mcaplog import McapLog
 from .sdnotify import Notifier
@@ -113,16 +114,16 @@ class Daemon:
             if self.link is not None:
                 self.link.tick(self.ratio)
             sample = self.source.poll(POLL_S)
-            if sample is None:
-                if not silent and time.monotonic() - last_data > self.cfg.link.link_timeout_s:
-                    silent = True
-                    self._operator(f"no GNSS or IMU data for {self.cfg.link.link_timeout_s:g} s: waiting")
-                continue
-            last_data = time.monotonic()
-            if silent:
-                silent = False
-                self._operator("data is back")
-            self.handle(sample)
+            if isinstance(sample, (GnssFix, ImuSample)):    # a HEARTBEAT or an ATTITUDE alone is not data
+                last_data = time.monotonic()
+                if silent:
+                    silent = False
+                    self._operator("data is back", level="info")
+            elif not silent and time.monotonic() - last_data > self.cfg.link.link_timeout_s:
+                silent = True
+                self._operator(f"no GNSS or IMU data for {self.cfg.link.link_timeout_s:g} s: waiting")
+            if sample is not None:
+                self.handle(sample)
 
     def handle(self, sample) -> list:
         """One sample through the core and out to the sinks."""
@@ -143,26 +144,27 @@ class Daemon:
                 text = alarm_text(e)
                 self.out(f"guard: {text} (t={e.t_us / 1e6:.2f} s, statistic {e.statistic:.1f} > {e.threshold:.1f})")
                 if self.link is not None:
-                    self.link.statustext(text, critical=True)
+                    self.link.statustext(text, "critical")
             elif isinstance(e, Cleared):
                 text = f"GUARD clear {e.sensor} {e.channel} k={e.gnss_index}"
                 self.out(f"guard: {text}")
                 if self.link is not None:
-                    self.link.statustext(text, critical=False)
+                    self.link.statustext(text, "notice")
             elif isinstance(e, Notice):
                 self._operator(e.text, level=e.level, send=e.level == "warning")
         return events
 
     def ratio(self) -> float:
-        """grd_ratio: the peak since the last call, at least 1.0 while a sensor is excluded."""
+        """grd_ratio: the largest statistic/threshold since the last call (an alarm's included), at least
+        1.0 while a sensor is excluded."""
         peak, self._peak = self._peak, 0.0
         latched = 1.0 if self.monitor.excluded else 0.0
-        return max(peak, latched, self.monitor.detector.ratio())
+        return max(peak, latched, self.monitor.detector.take_peak())
 
     def _operator(self, text: str, level: str = "warning", send: bool = True) -> None:
         (log.warning if level == "warning" else log.info)("%s", text)
         if send and self.link is not None:
-            self.link.statustext(f"GUARD {text}", critical=False)
+            self.link.statustext(f"GUARD {text}", level)
 
     def summary(self) -> str:
         skipped = Counter(self.monitor.skipped)

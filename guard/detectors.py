@@ -93,6 +93,7 @@ class PageCusum:
         self._first_t: dict[str, int] = {}
         self.peak: dict[str, float] = {}                # sensor -> largest statistic / threshold seen
         self.run_length: dict[str, int] = {}            # sensor -> samples in the last alarm's run: its onset
+        self.recent = 0.0                               # largest statistic / threshold since take_peak()
 
     def threshold(self, rate_hz: float) -> list[float]:
         """h of each member, for one side of one channel sampled at rate_hz."""
@@ -138,6 +139,8 @@ class PageCusum:
             j = best_j
             if best > self.peak.get(sensor, 0.0):
                 self.peak[sensor] = best
+            if best > self.recent:
+                self.recent = best
             stat.append(best_g)
             thr.append(hs[j])
             if best > 1.0:
@@ -152,6 +155,11 @@ class PageCusum:
         """The largest statistic / threshold over every channel and member now (1.0 = at the threshold)."""
         return max((max(c.gp[j], c.gn[j]) / self.h[s][j] for s, chans in self.state.items() if s in self.h
                     for c in chans for j in range(len(self.ks))), default=0.0)
+
+    def take_peak(self) -> float:
+        """The largest statistic / threshold since the last call, over every channel and member."""
+        peak, self.recent = self.recent, 0.0
+        return peak
 
     def forget(self, sensor: str) -> None:
         """Restart one sensor's test (it was re-admitted); its threshold stays."""
@@ -216,6 +224,8 @@ class PaperCusum:
         return max((c.S / (c.n * c.mean + kappa * c.std * math.sqrt(c.n)) for chans in self.state.values()
                     for c in chans if c.n > n0 and c.mean > 0), default=0.0)
 
+    take_peak = ratio           # the statistic now: its alarms reach grd_ratio through the daemon
+
     def forget(self, sensor: str) -> None:
         self.state.pop(sensor, None)
 
@@ -252,6 +262,8 @@ class Gate:
 
     def ratio(self) -> float:
         return 0.0
+
+    take_peak = ratio
 
     def forget(self, sensor: str) -> None:
         for key in [k for k in self.since if k[0] == sensor]:
@@ -297,6 +309,8 @@ class ChiSquare:
 
     def ratio(self) -> float:
         return 0.0
+
+    take_peak = ratio
 
     def forget(self, sensor: str) -> None:
         pass            # memoryless

@@ -126,15 +126,18 @@ class MavlinkLink:
             ms = int((now - self.t0) * 1000) & 0xFFFFFFFF
             self._send(lambda m: m.named_value_float_send(ms, b"grd_ratio", value))
 
-    def statustext(self, text: str, critical: bool) -> None:
-        """Send a STATUSTEXT. Notices are rate-limited; a CRITICAL alarm never is (it is sent once)."""
+    def statustext(self, text: str, level: str) -> None:
+        """Send a STATUSTEXT at `level` ("critical", "warning" or "notice"). Warnings and notices are
+        rate-limited; a CRITICAL alarm never is (it is sent once)."""
+        critical = level == "critical"
         now = time.monotonic()
         self._sent = [t for t in self._sent if now - t < 1.0]
         if not critical and len(self._sent) >= STATUSTEXT_PER_S:
             self.skipped["statustext_rate_limited"] += 1
             return
         self._sent.append(now)
-        severity = mavlink.MAV_SEVERITY_CRITICAL if critical else mavlink.MAV_SEVERITY_NOTICE
+        severity = {"critical": mavlink.MAV_SEVERITY_CRITICAL, "warning": mavlink.MAV_SEVERITY_WARNING}.get(
+            level, mavlink.MAV_SEVERITY_NOTICE)
         self._send(lambda m: m.statustext_send(severity, text.encode()[:50]))
 
     def _send(self, fn) -> None:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
+import logging
 import math
 import os
 import re
@@ -40,7 +41,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SCENARIOS = ROOT / "configs" / "scenarios"
 MAGIC = b"\x89MCAP0\r\n"
 SAMPLE_TYPES = {"GPS_RAW_INT", "RAW_IMU", "ATTITUDE", "HEARTBEAT"}
-CRITICAL, NOTICE = 2, 5
+CRITICAL, WARNING, NOTICE = 2, 4, 5
 MAV_TYPE_ONBOARD_CONTROLLER = 18
 GUARD_COMPONENT = 191
 
@@ -377,13 +378,14 @@ def test_gnss_fix_lost_mid_drive_warns_without_alarm():
         assert g.d.samples == n
         assert g.d.monitor.skipped["gnss_no_fix"] == 50
         assert not g.d.monitor.gnss_lost, "the fix came back at 20 s"
-    notices = texts(got, NOTICE)
-    assert any("GNSS fix lost" in t for t in notices), notices
+    warnings = texts(got, WARNING)
+    assert any("GNSS fix lost" in t for t in warnings), texts(got)
     assert not texts(got, CRITICAL), texts(got)
     assert g.d.alarms == 0
 
 
 def test_link_silence_warns_and_recovers(caplog):
+    caplog.set_level(logging.INFO)
     enc, items = scenario_messages("paper", until_s=15)
     stream = frames(enc, items)
     cut = next(i for i, (t_us, _) in enumerate(items) if t_us > 10e6)
@@ -396,13 +398,15 @@ def test_link_silence_warns_and_recovers(caplog):
         time.sleep(0.3)
         got = drain(peer)
         assert g.thread.is_alive()
-    notices = texts(got, NOTICE)
-    silent = [i for i, t in enumerate(notices) if "no GNSS or IMU data" in t]
-    back = [i for i, t in enumerate(notices) if "data is back" in t]
-    assert silent and back and silent[0] < back[0], notices
+    said = texts(got)
+    silent = [i for i, t in enumerate(said) if "no GNSS or IMU data" in t]
+    back = [i for i, t in enumerate(said) if "data is back" in t]
+    assert silent and back and silent[0] < back[0], said
     assert len([i for i in silent if i < back[0]]) == 1, "warned once per silence"
+    assert any("no GNSS or IMU data" in t for t in texts(got, WARNING)), "the silence is a WARNING"
+    assert any("data is back" in t for t in texts(got, NOTICE)), "its end a NOTICE"
     assert n > 0 and not texts(got, CRITICAL)
-    logged = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    logged = [r.getMessage() for r in caplog.records]
     assert any("no GNSS or IMU data" in m for m in logged) and any("data is back" in m for m in logged), logged
     # the link stayed up during the silence: statistics kept coming between the two notices
     kinds = [(m.get_type(), getattr(m, "text", "")) for m in got]
@@ -418,6 +422,19 @@ def test_link_silence_warning_states_the_timeout(caplog):
     assert "0.5 s" in warning, warning
 
 
+def test_a_link_with_heartbeats_alone_is_silent(caplog):
+    """An autopilot whose GNSS and IMU streams are off still sends HEARTBEAT: that is no data."""
+    with in_process({"link": {"link_timeout_s": 1.0}}) as g:
+        peer = g.connect()
+        for _ in range(25):           # 10 Hz for 2.5 s: before, each one reset the silence clock
+            peer.mav.heartbeat_send(mavutil.mavlink.MAV_TYPE_GROUND_ROVER, mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                    0, 0, 0)
+            time.sleep(0.1)
+        got = drain(peer)
+        assert g.d.samples >= 20, "the heartbeats reached the daemon"
+    assert any("no GNSS or IMU data" in t for t in texts(got, WARNING)), texts(got)
+
+
 def test_time_jumping_back_reinitialises_without_alarm():
     def back_5s(t_us, msg):
         if t_us >= 15e6 and hasattr(msg, "time_usec"):
@@ -429,7 +446,7 @@ def test_time_jumping_back_reinitialises_without_alarm():
         got = drain(peer)
         assert g.d.samples == n
         assert g.d.monitor.ekf is not None, "the filter started again on the next fix"
-    notices = texts(got, NOTICE)
+    notices = texts(got, WARNING)
     # the first shifted sample (15.0 s -> 10.0 s) comes 0.1 s after the last good one (14.9 s)
     assert any(re.search(r"time jumped -4\.9 s: filter re-initialised", t) for t in notices), notices
     assert not texts(got, CRITICAL) and g.d.alarms == 0
@@ -447,7 +464,7 @@ def test_unwritable_log_still_alarms(tmp_path):
         assert g.thread.is_alive()
     critical = texts(got, CRITICAL)
     assert critical and re.search(r"GUARD ALARM gnss_pos north \+1\d\.\dm k=40[0-3]", critical[0]), critical
-    assert any("MCAP log lost" in t for t in texts(got, NOTICE)), texts(got)
+    assert any("MCAP log lost" in t for t in texts(got, WARNING)), texts(got)
     assert any("GUARD ALARM" in line for line in g.out)
     assert "MCAP errors" in g.out[-1], g.out[-1]
     assert not mcap.exists()

@@ -177,6 +177,18 @@ def test_page_statistic_restarts_at_zero():
     assert stat == (0.0,) and not alarms
 
 
+def test_page_take_peak_keeps_what_fell_back_between_calls():
+    """grd_ratio's source: a rise that an alarm's restart (or the data) took back is still reported once."""
+    det = PageCusum(ONE, n_channels=1)
+    S = np.eye(1)
+    feed(det, "s", [[0.0], [0.0]], S)
+    det.test("s", 2 * DT_US, np.array([20.0]), S)           # an alarm: the test restarts at 0
+    det.test("s", 3 * DT_US, np.array([0.0]), S)
+    assert det.ratio() == 0.0
+    assert det.take_peak() > 1.0
+    assert det.take_peak() == 0.0                           # taken: the next call starts afresh
+
+
 def test_page_delay_for_a_small_step():
     """2 sigma step, k = 1.5: the mean delay is Siegmund's out-of-control ARL (about h / (delta - k))."""
     rng = np.random.default_rng(13)
