@@ -71,7 +71,7 @@ def test_unit_has_the_key_settings():
     service = {key: values[-1] for key, values in unit["Service"].items()}
     assert service["Type"] == "notify"
     assert service["NotifyAccess"] == "main"
-    assert service["ExecStart"] == "/opt/guard/.venv/bin/guard run --config /etc/guard/guard.toml"
+    assert service["ExecStart"] == "/opt/guard/.venv/bin/guard run --config /etc/guard/guard.toml --mcap /var/log/guard"
     assert int(service["WatchdogSec"]) > 0
     assert service["Restart"] == "on-failure"
     assert service["NoNewPrivileges"] == "yes"
