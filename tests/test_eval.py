@@ -89,3 +89,24 @@ def test_false_alarm_extrapolation_follows_the_tail_and_declines_too_few_runs(ha
     expected = 1 / (0.5 * 10 ** -2.5)
     assert harness.extrapolate(rows) == pytest.approx(expected, rel=0.2)
     assert harness.extrapolate(rows[::100]) is None
+
+
+def test_an_interrupted_campaign_resumes_where_it_stopped(harness, tmp_path, capsys):
+    attacks = (harness.Attack("step", "gnss_pos", "north", 5.0, 10.0),)
+    jobs = [("step", "resume", attacks, 15.0, seed, ("cusum",), str(tmp_path), ()) for seed in (0, 1)]
+    whole = harness.campaign(jobs, tmp_path, 2, resume=False)
+    assert [r["seed"] for r in whole] == [0, 1] and all(r["detected"] for r in whole)
+    partial = tmp_path / harness.PARTIAL
+    lines = partial.read_text().splitlines()
+    assert len(lines) == 2
+    # the interruption: one job's line whole, the other's cut mid-write
+    first = next(line for line in lines if json.loads(line)["rows"][0]["seed"] == 0)
+    partial.write_text(first + "\n" + lines[1][:40])
+    capsys.readouterr()
+    again = harness.campaign(jobs, tmp_path, 2, resume=True)
+    assert "resuming: 1 of 2 runs" in capsys.readouterr().err
+    assert again == whole, "the resumed campaign gives the same rows, in the jobs' order"
+    assert [json.loads(line)["rows"][0]["seed"] for line in partial.read_text().splitlines()] == [0, 1]
+    # without --resume the leftovers are discarded and every job runs
+    harness.campaign(jobs, tmp_path, 2, resume=False)
+    assert "resuming" not in capsys.readouterr().err

@@ -7,6 +7,7 @@ detectors side by side. Prints a table and writes CSV, JSON and figures.
     python tools/eval.py --figure "gyro z bias 0.05 rad/s" 3   # one run's tlog, report and figure
     python tools/eval.py --families imu --set filter.heading_sigma_rad=0.05   # a config key changed
     python tools/eval.py --summarise out/eval-clean       # the table and figures of an earlier campaign again
+    python tools/eval.py ... --resume         # an interrupted campaign, on from where it stopped (same code)
 
 Families (each a list of cases, each case run over --seeds seeds, attack at t = 30 s unless said):
   step      GNSS position step of 1, 2, 5, 10, 20 m on north and east
@@ -42,8 +43,9 @@ import math
 import statistics
 import sys
 import tempfile
+import time
 import tomllib
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -188,6 +190,45 @@ def one(job) -> list[dict]:
     return rows
 
 
+PARTIAL = "runs.partial.jsonl"     # the rows of a campaign still running, one finished job a line
+
+
+def campaign(jobs: list[tuple], out: Path, workers: int, resume: bool) -> list[dict]:
+    """Run the jobs in parallel; say how far it got every ~5 %. Each finished job's rows are appended
+    to out/runs.partial.jsonl at once, so that an interrupted campaign resumes (`resume`) where it
+    stopped: jobs with the same case, seed, detectors and settings are not run again. Rows come back
+    in the jobs' order, whatever order the workers finish in."""
+    def key(job):
+        family, name, _, _, seed, detectors, _, settings = job
+        return json.dumps([family, name, seed, list(detectors), list(settings)])
+    done: dict[str, list[dict]] = {}
+    partial = out / PARTIAL
+    if resume and partial.is_file():
+        for line in partial.read_text().splitlines():
+            try:
+                item = json.loads(line)
+                done[item["key"]] = item["rows"]
+            except (json.JSONDecodeError, KeyError, TypeError):
+                pass                                  # a line cut by the interruption: that job runs again
+    # what was kept, whole lines only (a cut last line would swallow the next one appended)
+    partial.write_text("".join(json.dumps({"key": k, "rows": rows}) + "\n" for k, rows in done.items()))
+    todo = [job for job in jobs if key(job) not in done]
+    if done:
+        print(f"eval: resuming: {len(jobs) - len(todo)} of {len(jobs)} runs already in {partial}", file=sys.stderr)
+    t0, step = time.monotonic(), max(1, len(todo) // 20)
+    with ProcessPoolExecutor(max_workers=workers) as pool, open(partial, "a") as log:
+        futures = {pool.submit(one, job): key(job) for job in todo}
+        for i, fut in enumerate(as_completed(futures), 1):
+            done[futures[fut]] = rows = fut.result()
+            log.write(json.dumps({"key": futures[fut], "rows": rows}) + "\n")
+            log.flush()
+            if i % step == 0 or i == len(todo):
+                left = (time.monotonic() - t0) / i * (len(todo) - i)
+                print(f"eval: {i} of {len(todo)} runs done, about {left / 60:.0f} min left", file=sys.stderr,
+                      flush=True)
+    return [r for job in jobs for r in done[key(job)]]
+
+
 def pct(values, q):
     return float(np.percentile(values, q)) if values else None
 
@@ -327,6 +368,8 @@ def main(argv=None) -> int:
     p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                    help="change one config key for every detector (a TOML value: 0.05, '\"air\"')")
     p.add_argument("--summarise", metavar="DIR", help="summarise DIR/runs.csv of an earlier campaign again")
+    p.add_argument("--resume", action="store_true",
+                   help="keep the runs an interrupted campaign left in OUT/runs.partial.jsonl (same code only)")
     p.add_argument("--figure", nargs=2, metavar=("CASE", "SEED"), help="simulate one run; keep its tlog, report, figure")
     args = p.parse_args(argv)
     if args.figure:
@@ -352,14 +395,14 @@ def main(argv=None) -> int:
                 return 2
             jobs = [(f, n, a, d, seed, args.detectors, work, tuple(args.set)) for f, n, a, d in todo
                     for seed in range(args.seeds)]
-            with ProcessPoolExecutor(max_workers=args.jobs) as pool:
-                rows = [r for rs in pool.map(one, jobs) for r in rs]
+            rows = campaign(jobs, out, args.jobs, args.resume)
     cfg = detector_config("cusum").monitor.detector
     arl0 = cfg.false_alarm_interval_h * 3600 * 10.0      # in GNSS samples
     summary = summarise(rows, 10.0, arl0)
     with open(out / "runs.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=sorted({k for r in rows for k in r}))
         w.writeheader(); w.writerows(rows)
+    (out / PARTIAL).unlink(missing_ok=True)            # the campaign is whole: nothing left to resume
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     plots(summary, rows, out)
     cols = ["case", "detector", "detection_rate", "median_delay_samples", "p95_delay_samples",
