@@ -18,9 +18,11 @@ its heading turns with the magnetometer's again (its own innovation agrees as so
 
 Which sensor an alarm names (`_isolate`): a heading alarm (magnetometer, GNSS velocity) compares
 how three sources turned: the gyro, the magnetometer and, on a ground vehicle, the GNSS course; the
-magnetometer and the course alike against the gyro means the gyro bent the heading. A ground
-vehicle (`vehicle`, from the autopilot's HEARTBEAT by default) also has v_y = 0 fused with every
-IMU update.
+magnetometer and the course alike against the gyro means the gyro bent the heading. A GNSS velocity
+alarm whose course agrees with the filter's heading but not with its track (the heading turned by
+the filter's own sideways velocity) names the lateral accelerometer: on wheels only it pushes the
+track sideways. A ground vehicle (`vehicle`, from the autopilot's HEARTBEAT by default) also has
+v_y = 0 fused with every IMU update.
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .detectors import DetectorConfig, make_detector
-from .ekf import (BW, H_IMU, H_IMU_GROUND, H_IMU_NO_MAG, H_IMU_NO_MAG_GROUND, H_POS, N_STATES, TH, VX, VY,
+from .ekf import (BAY, BW, H_IMU, H_IMU_GROUND, H_IMU_NO_MAG, H_IMU_NO_MAG_GROUND, H_POS, N_STATES, TH, VX, VY,
                   FilterConfig, NavEKF, gnss_velocity_model)
 from .events import AMBIGUOUS, CHANNELS, Alarm, Cleared, Estimate, Event, Innovation, Notice, Tested
 from .geo import LocalFrame, declination_rad
@@ -100,6 +102,7 @@ class Monitor:
         self.gnss_lost = False
         self.excluded: dict[str, int] = {}         # sensor -> time of the last inconsistent innovation
         self._with_receiver: set[str] = set()      # excluded with the receiver, not by an alarm of its own
+        self._accel_ref: float | None = None        # a laterally biased accelerometer's bias before the attack
         self.detector.reset()
         self._imu_sum = [0.0] * 5                   # ax, ay, yaw rate, m_x, m_y since the last fusion
         self._imu_n = self._mag_n = 0
@@ -218,32 +221,40 @@ class Monitor:
             self._course.clear()
             return
         course = math.atan2(fix.vel_n_mps, fix.vel_e_mps)
-        r = math.remainder(course - x[TH] - math.atan2(x[VY], x[VX]), math.tau)
+        r0 = math.remainder(course - x[TH], math.tau)          # against the heading alone
+        r = math.remainder(r0 - math.atan2(x[VY], x[VX]), math.tau)    # against the filter's track
         self._course.append((r, math.sqrt((self.cfg.filter.gnss_vel_sigma_mps / speed) ** 2 + self.ekf.P[TH, TH]),
-                             fix.t_us - int(self.cfg.filter.gnss_delay_s * 1e6), course, speed))
+                             fix.t_us - int(self.cfg.filter.gnss_delay_s * 1e6), course, speed, r0))
 
-    def _isolate(self, sensor: str) -> tuple[str, tuple[str, ...]]:
-        """Which sensor a heading alarm (magnetometer, GNSS velocity) names, and what it cannot rule out.
+    def _isolate(self, sensor: str) -> tuple[str, tuple[str, ...], str | None]:
+        """Which sensor a heading alarm (magnetometer, GNSS velocity) names, what it cannot rule out,
+        and the channel when it names another sensor.
 
         Three sources see the heading turn: the gyro, the magnetometer and, on a ground vehicle at
         speed, the GNSS course. When the magnetometer and the course turned alike over the last
-        2 WITNESS_S and the gyro turned differently from both, the gyro is named. Otherwise the alarmed
-        sensor is named; a GNSS velocity alone when its course disagrees with the filter's heading.
-        Without the course (in the air, standing still) a magnetometer alarm cannot be told from a
-        gyro bias, and an along-track GNSS velocity alarm never can be told from an accelerometer bias
-        (a coordinated spoof looks the same): the alarm names both.
+        2 WITNESS_S and the gyro turned differently from both, the gyro is named. A GNSS velocity
+        whose course agrees with the filter's heading but not with its track (heading plus its own
+        sideways velocity) has been pushed sideways by the filter, not by the receiver: a wheel does
+        not slide, so the lateral accelerometer is named. Otherwise the alarmed sensor is named; a
+        GNSS velocity alone when its course disagrees with the filter's track. Without the course (in
+        the air, standing still) a magnetometer alarm cannot be told from a gyro bias, and an
+        along-track GNSS velocity alarm never can be told from an accelerometer bias (a coordinated
+        spoof looks the same): the alarm names both.
         """
         turns = self._turns()
         if turns is None or turns[1] is None:
-            return sensor, AMBIGUOUS.get(sensor, ())
+            return sensor, AMBIGUOUS.get(sensor, ()), None
         z_gm, z_gc, z_mc = turns
         if min(abs(z_gm), abs(z_gc)) >= TURN_Z[0] and abs(z_mc) < TURN_Z[1]:
-            return "gyro", ()
+            return "gyro", (), None
         if sensor == "mag":
-            return "mag", ()
+            return "mag", (), None
         n = self._course.maxlen // 2
-        r, s = np.mean([w[:2] for w in list(self._course)[-n:]], axis=0)
-        return sensor, (() if abs(r / s) * math.sqrt(n) >= WITNESS_Z else AMBIGUOUS.get(sensor, ()))
+        r, s, r0 = np.mean([(w[0], w[1], w[5]) for w in list(self._course)[-n:]], axis=0)
+        z, z0 = abs(r / s) * math.sqrt(n), abs(r0 / s) * math.sqrt(n)
+        if z >= TURN_Z[0] and z0 < TURN_Z[1]:
+            return "accel", (), "y"
+        return sensor, (() if z >= WITNESS_Z else AMBIGUOUS.get(sensor, ())), None
 
     def _turns(self) -> tuple[float, float | None, float | None] | None:
         """How differently the heading sources turned over the last 2 WITNESS_S, as z-scores of the
@@ -252,7 +263,7 @@ class Monitor:
         yaw rate, less the filter's bias, integrated."""
         if len(self._mag) < self._mag.maxlen // 2:
             return None
-        t, heading, rate = np.array(self._mag).T
+        t, heading, rate = np.array(self._mag)[:, :3].T
         t0, t = t[0], (t - t[0]) / 1e6
         gyro = np.cumsum((rate - self.ekf.x[BW]) * np.diff(t, prepend=0.0))
 
@@ -261,7 +272,7 @@ class Monitor:
             return float(d @ y) / float(d @ d), sigma / math.sqrt(float(d @ d))
         f = self.cfg.filter
         s_gm, e_gm = slope(t, gyro - np.unwrap(heading), f.heading_sigma_rad)
-        course = [c[2:] for c in self._course if c[2] >= t0]
+        course = [c[2:5] for c in self._course if c[2] >= t0]
         if len(course) < self._course.maxlen // 2:
             return s_gm / e_gm, None, None
         tc, course, speed = np.array(course).T
@@ -296,9 +307,15 @@ class Monitor:
             self._states.clear()
             self._states.extend(states)
 
+    def _lateral_bias(self) -> float:
+        """The lateral accelerometer's offset over the last 2 s: its mean reading less the centripetal
+        acceleration of a wheel that does not slide, yaw rate (less the filter's gyro bias) x speed."""
+        _, _, rate, ay, vx = np.array(self._mag).T
+        return float(np.mean(ay - (rate - self.ekf.x[BW]) * vx))
+
     def _gyro_bias(self) -> float:
         """The gyro's offset from the magnetometer: mean yaw rate minus the slope of the heading (last 2 s)."""
-        t, heading, rate = np.array(self._mag).T
+        t, heading, rate = np.array(self._mag)[:, :3].T
         return float(np.mean(rate) - np.polyfit((t - t[0]) / 1e6, np.unwrap(heading), 1)[0])
 
     def _freeze(self, fix: GnssFix) -> list[Event]:
@@ -367,7 +384,7 @@ class Monitor:
         z = np.array(z)
         r, S, PHT = self.ekf.innovation(z, H @ self.ekf.x, H, R, angle_rows=(0,) if heading is not None else ())
         if heading is not None:
-            self._mag.append((s.t_us, heading, rate))
+            self._mag.append((s.t_us, heading, rate, ay, self.ekf.x[VX]))
         # one stacked update, tested sensor by sensor
         events: list[Event] = []
         keep: list[int] = []
@@ -434,11 +451,13 @@ class Monitor:
         if sensor not in self.excluded:
             fused = True
             for i, offset in hits:
-                named, ambiguous = self._isolate(sensor) if sensor in ("mag", "gnss_vel") else (sensor, ())
+                named, ambiguous, channel = self._isolate(sensor) if sensor in ("mag", "gnss_vel") \
+                    else (sensor, (), None)
                 if named in self.excluded:
                     continue
-                channel = names[i] if named == sensor else CHANNELS[named][0]
-                offset = self._gyro_bias() if named == "gyro" else offset
+                channel = names[i] if named == sensor else channel or CHANNELS[named][0]
+                if named != sensor:                 # a witness named it: its own offset, not the alarm's
+                    offset = self._gyro_bias() if named == "gyro" else self._lateral_bias()
                 events.append(Alarm(t_us, self.gnss_index, named, channel, stat[i], thr[i], offset,
                                     self.detector.name, ambiguous))
                 if self.cfg.exclude_on_alarm:
@@ -451,6 +470,13 @@ class Monitor:
                     self._with_receiver.discard(named)
                     if named in RECEIVER:
                         self._rewind_epochs = getattr(self.detector, "run_length", {}).get(sensor, 0)
+                    if named == "accel" and named != sensor:
+                        # the lateral bias the filter had before the CUSUM's run began is the sensor's
+                        # own; what it absorbed since is the attack's, given back
+                        run = getattr(self.detector, "run_length", {}).get(sensor, 0)
+                        before = self._epochs[-run][1] if 0 < run <= len(self._epochs) else self.ekf.x
+                        self._accel_ref = float(before[BAY])
+                        self.ekf.x[BAY] = self._accel_ref
             fused = sensor not in self.excluded
         else:
             fused = False
@@ -459,12 +485,17 @@ class Monitor:
                 self.excluded[sensor] = t_us        # still inconsistent
             elif sensor == "gyro" and abs((self._turns() or (0.0,))[0]) >= TURN_Z[1]:
                 self.excluded[sensor] = t_us        # its heading still turns away from the magnetometer's
+            elif sensor == "accel" and self._accel_ref is not None and \
+                    abs(self._lateral_bias() - self._accel_ref) >= self.cfg.filter.accel_sigma_mps2:
+                self.excluded[sensor] = t_us        # it still reads sideways what the wheels do not do
             elif sensor == "gnss_pos" and "gnss_vel" in self.excluded:
                 # a receiver whose velocity is still judged attacked: its position waits. (The filter's own
                 # uncertainty grows while both are out, which would let a spoofed position "agree".)
                 self.excluded[sensor] = t_us
             elif t_us - self.excluded[sensor] >= self.cfg.readmit_s * 1e6:
                 del self.excluded[sensor]
+                if sensor == "accel":
+                    self._accel_ref = None
                 self.detector.forget(sensor)        # a fresh test: what it summed while excluded is spent
                 if sensor in self._with_receiver:   # it raised no alarm: nothing to clear on a ground station
                     self._with_receiver.discard(sensor)
