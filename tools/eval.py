@@ -14,7 +14,7 @@ Families (each a list of cases, each case run over --seeds seeds, attack at t = 
   ramp      GNSS north drifting at 0.05, 0.1, 0.3, 1, 2 m/s
   spoof     coordinated spoof: north position and velocity accelerating away at 0.05 m/s^2
   freeze    the GNSS fix stops updating while the vehicle moves
-  imu       gyro z bias 0.05 rad/s; accelerometer x bias 0.5 m/s^2; magnetometer x bias 0.05 G and
+  imu       gyro z bias 0.05 rad/s; accelerometer x and y bias 0.5 m/s^2; magnetometer x bias 0.05 G and
             x ramp 0.01 G/s (a heading drift, the gyro bias's look-alike: isolation must tell them apart)
   early     a 5 m GNSS north step at GPS sample 5, after a clean start
   clean     10-minute clean drives with turns and speed changes, and others with three 5 s GNSS dropouts
@@ -83,6 +83,7 @@ def cases(families: list[str]) -> list[tuple[str, str, tuple[Attack, ...], float
     if "imu" in families:
         out.append(("imu", "gyro z bias 0.05 rad/s", (Attack("bias", "gyro", "z", 0.05, START_S),), 60.0))
         out.append(("imu", "accel x bias 0.5 m/s2", (Attack("bias", "accel", "x", 0.5, START_S),), 60.0))
+        out.append(("imu", "accel y bias 0.5 m/s2", (Attack("bias", "accel", "y", 0.5, START_S),), 60.0))
         out.append(("imu", "mag x bias 0.05 G", (Attack("bias", "mag", "x", 0.05, START_S),), 60.0))
         out.append(("imu", "mag x ramp 0.01 G/s", (Attack("ramp", "mag", "x", 0.01, START_S),), 60.0))
     if "early" in families:
