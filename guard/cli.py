@@ -11,7 +11,9 @@ import logging
 import sys
 
 from . import __version__
-from .errors import GuardError
+from .errors import ConfigError, GuardError
+
+EX_CONFIG = 78     # sysexits' configuration error: the systemd unit does not restart on it (it would not mend)
 
 
 def _replay(args) -> int:
@@ -152,6 +154,9 @@ def main(argv: list[str] | None = None) -> int:
     logging.getLogger("dronecan").setLevel(logging.WARNING)     # its import says which drivers it lacks
     try:
         return args.func(args)
+    except ConfigError as e:
+        print(f"guard: error: {e}", file=sys.stderr)
+        return EX_CONFIG
     except GuardError as e:
         print(f"guard: error: {e}", file=sys.stderr)
         return 1

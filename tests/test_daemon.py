@@ -663,11 +663,17 @@ def test_config_error_is_one_line(tmp_path, body, key):
     bad.write_text(body)
     r = subprocess.run([sys.executable, "-m", "guard", "run", "--config", str(bad)], capture_output=True,
                        text=True, cwd=ROOT, timeout=30)
-    assert r.returncode != 0
+    assert r.returncode == 78, "EX_CONFIG: the systemd unit does not restart on it"
     lines = r.stderr.splitlines()
     assert len(lines) == 1, r.stderr
     assert key in lines[0] and str(bad) in lines[0], lines[0]
     assert "listening on" not in r.stdout
+
+
+def test_a_missing_config_is_a_config_error(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "guard", "run", "--config", str(tmp_path / "none.toml")],
+                       capture_output=True, text=True, cwd=ROOT, timeout=30)
+    assert r.returncode == 78 and "none.toml" in r.stderr, (r.returncode, r.stderr)
 
 
 def test_tcp_nothing_listening_is_one_line():
@@ -676,7 +682,7 @@ def test_tcp_nothing_listening_is_one_line():
         port = s.getsockname()[1]
     r = subprocess.run([sys.executable, "-m", "guard", "run", "--connect", f"tcp:127.0.0.1:{port}"],
                        capture_output=True, text=True, cwd=ROOT, timeout=60)
-    assert r.returncode != 0
+    assert r.returncode == 1, "a link that may come back: not a config error, systemd restarts it"
     lines = r.stderr.splitlines()
     assert len(lines) == 1, r.stderr
     assert f"tcp:127.0.0.1:{port}" in lines[0] and "refused" in lines[0].lower(), lines[0]

@@ -74,6 +74,7 @@ def test_unit_has_the_key_settings():
     assert service["ExecStart"] == "/opt/guard/.venv/bin/guard run --config /etc/guard/guard.toml --mcap /var/log/guard"
     assert int(service["WatchdogSec"]) > 0
     assert service["Restart"] == "on-failure"
+    assert service["RestartPreventExitStatus"] == "78"     # guard's exit status on a config error
     assert service["NoNewPrivileges"] == "yes"
     assert service["ProtectSystem"] == "strict"
     assert "/var/log/guard" in service["ReadWritePaths"].split()
