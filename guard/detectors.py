@@ -37,7 +37,7 @@ import numpy as np
 
 @dataclass(frozen=True)
 class DetectorConfig:
-    name: str = "cusum"                 # "cusum" | "paper"
+    name: str = "cusum"                 # "cusum" | "paper" | "gate" | "chi2"
     false_alarm_interval_h: float = 1000.0   # cusum: target mean time between false alarms, all channels
     shift_sigma: tuple[float, ...] = (1.0, 4.0)   # cusum: design shifts delta (sigmas), one CUSUM each
     paper_kappa: float = 3.0            # paper: half-width of the band, in standard deviations of a sum
