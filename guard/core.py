@@ -183,6 +183,10 @@ class Monitor:
         before = ekf.x.copy() if delayed else None
         e, n = self.frame.to_en(fix.lat_deg, fix.lon_deg)
         events += self._measure("gnss_pos", fix.t_us, np.array([e, n]), xd[:2].copy(), H_POS, self.R_pos)
+        if delayed:                 # the position's correction, carried to the state the velocity is tested on
+            dx = ekf.x - before
+            dx[TH] = math.remainder(dx[TH], math.tau)
+            xd = xd + dx
         if self.cfg.filter.use_gnss_velocity and fix.vel_n_mps is not None:
             self._witness_course(fix, xd)
             hx, H = gnss_velocity_model(xd)
@@ -303,9 +307,10 @@ class Monitor:
         ekf.predict((now - t) / 1e6)
         self._epochs.clear()
         self._imu_log.clear()
-        if delayed:
+        if delayed:                 # the states before t0 stand; those after it are the re-run's
+            kept = [st for st in self._states if st[0] < t0]
             self._states.clear()
-            self._states.extend(states)
+            self._states.extend(kept + states)
 
     def _lateral_bias(self) -> float:
         """The lateral accelerometer's offset over the last 2 s: its mean reading less the centripetal
@@ -474,7 +479,8 @@ class Monitor:
                         # the lateral bias the filter had before the CUSUM's run began is the sensor's
                         # own; what it absorbed since is the attack's, given back
                         run = getattr(self.detector, "run_length", {}).get(sensor, 0)
-                        before = self._epochs[-run][1] if 0 < run <= len(self._epochs) else self.ekf.x
+                        before = self._epochs[-min(max(run, 1), len(self._epochs))][1] if self._epochs \
+                            else self.ekf.x
                         self._accel_ref = float(before[BAY])
                         self.ekf.x[BAY] = self._accel_ref
             fused = sensor not in self.excluded
@@ -485,7 +491,8 @@ class Monitor:
                 self.excluded[sensor] = t_us        # still inconsistent
             elif sensor == "gyro" and abs((self._turns() or (0.0,))[0]) >= TURN_Z[1]:
                 self.excluded[sensor] = t_us        # its heading still turns away from the magnetometer's
-            elif sensor == "accel" and self._accel_ref is not None and \
+            elif sensor == "accel" and self._accel_ref is not None and self._mag and \
+                    t_us - self._mag[-1][0] < 1e6 and \
                     abs(self._lateral_bias() - self._accel_ref) >= self.cfg.filter.accel_sigma_mps2:
                 self.excluded[sensor] = t_us        # it still reads sideways what the wheels do not do
             elif sensor == "gnss_pos" and "gnss_vel" in self.excluded:

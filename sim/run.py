@@ -73,7 +73,7 @@ class Simulation:
                            "speed_mps": []}
         # a receiver with latency reports the vehicle as it was gnss_delay_s ago: the states since then
         delay = scenario.noise.gnss_delay_s
-        self.past = deque([(0.0, copy.copy(self.vehicle.s))]) if delay > 0 else None
+        self.past = deque([(0.0, copy.copy(self.vehicle.s))]) if delay > 0 and scenario.rates.gnss_hz > 0 else None
 
     def ticks(self):
         """Yield (t_us, [messages]) in time order, advancing the vehicle between ticks.
