@@ -110,3 +110,10 @@ def test_an_interrupted_campaign_resumes_where_it_stopped(harness, tmp_path, cap
     # without --resume the leftovers are discarded and every job runs
     harness.campaign(jobs, tmp_path, 2, resume=False)
     assert "resuming" not in capsys.readouterr().err
+
+
+def test_an_interrupted_campaign_is_not_overwritten_unasked(harness, tmp_path, capsys):
+    (tmp_path / harness.PARTIAL).write_text('{"key": "[]", "rows": []}\n')
+    assert harness.main(["--families", "early", "--seeds", "1", "--detectors", "cusum", "--out", str(tmp_path)]) == 2
+    assert "--resume" in capsys.readouterr().err
+    assert (tmp_path / harness.PARTIAL).read_text().startswith('{"key"'), "left as it was"

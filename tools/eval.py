@@ -219,14 +219,18 @@ def campaign(jobs: list[tuple], out: Path, workers: int, resume: bool) -> list[d
     t0, step = time.monotonic(), max(1, len(todo) // 20)
     with ProcessPoolExecutor(max_workers=workers) as pool, open(partial, "a") as log:
         futures = {pool.submit(one, job): key(job) for job in todo}
-        for i, fut in enumerate(as_completed(futures), 1):
-            done[futures[fut]] = rows = fut.result()
-            log.write(json.dumps({"key": futures[fut], "rows": rows}) + "\n")
-            log.flush()
-            if i % step == 0 or i == len(todo):
-                left = (time.monotonic() - t0) / i * (len(todo) - i)
-                print(f"eval: {i} of {len(todo)} runs done, about {left / 60:.0f} min left", file=sys.stderr,
-                      flush=True)
+        try:
+            for i, fut in enumerate(as_completed(futures), 1):
+                done[futures[fut]] = rows = fut.result()
+                log.write(json.dumps({"key": futures[fut], "rows": rows}) + "\n")
+                log.flush()
+                if i % step == 0 or i == len(todo):
+                    left = (time.monotonic() - t0) / i * (len(todo) - i)
+                    print(f"eval: {i} of {len(todo)} runs done, about {left / 60:.0f} min left", file=sys.stderr,
+                          flush=True)
+        except BaseException:           # a failed run or Ctrl-C: stop now; what finished is kept for --resume
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
     return [r for job in jobs for r in done[key(job)]]
 
 
@@ -396,6 +400,10 @@ def main(argv=None) -> int:
                 return 2
             jobs = [(f, n, a, d, seed, args.detectors, work, tuple(args.set)) for f, n, a, d in todo
                     for seed in range(args.seeds)]
+            if (out / PARTIAL).exists() and not args.resume:
+                print(f"eval: {out / PARTIAL} holds the runs of an interrupted campaign: --resume to go on "
+                      "with them, or delete it", file=sys.stderr)
+                return 2
             rows = campaign(jobs, out, args.jobs, args.resume)
     cfg = detector_config("cusum").monitor.detector
     arl0 = cfg.false_alarm_interval_h * 3600 * 10.0      # in GNSS samples
