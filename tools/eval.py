@@ -12,7 +12,8 @@ detectors side by side. Prints a table and writes CSV, JSON and figures.
 Families (each a list of cases, each case run over --seeds seeds, attack at t = 30 s unless said):
   step      GNSS position step of 1, 2, 5, 10, 20 m on north and east
   ramp      GNSS north drifting at 0.05, 0.1, 0.3, 1, 2 m/s
-  spoof     coordinated spoof: north position and velocity accelerating away at 0.05 m/s^2
+  spoof     coordinated spoof: north, or east, position and velocity accelerating away at 0.05 m/s^2,
+            from 30 s + 9 s x (seed mod 10): along the track or across it, in a turn or a straight
   freeze    the GNSS fix stops updating while the vehicle moves
   imu       gyro z bias 0.05 rad/s; accelerometer x and y bias 0.5 m/s^2; magnetometer x bias 0.05 G and
             x ramp 0.01 G/s (a heading drift, the gyro bias's look-alike: isolation must tell them apart)
@@ -64,6 +65,7 @@ from sim.run import run                          # noqa: E402
 from sim.scenario import Attack                  # noqa: E402
 
 START_S = 30.0
+SPOOF_PHASE_S = 9.0
 
 
 def cases(families: list[str]) -> list[tuple[str, str, tuple[Attack, ...], float]]:
@@ -77,7 +79,8 @@ def cases(families: list[str]) -> list[tuple[str, str, tuple[Attack, ...], float
         for m in (0.05, 0.1, 0.3, 1.0, 2.0):
             out.append(("ramp", f"ramp north {m:g} m/s", (Attack("ramp", "gnss_pos", "north", m, START_S),), 90.0))
     if "spoof" in families:
-        out.append(("spoof", "spoof north 0.05 m/s2", (Attack("spoof", "gnss_pos", "north", 0.05, START_S),), 75.0))
+        for ch in ("north", "east"):
+            out.append(("spoof", f"spoof {ch} 0.05 m/s2", (Attack("spoof", "gnss_pos", ch, 0.05, START_S),), 105.0))
     if "freeze" in families:
         out.append(("freeze", "freeze", (Attack("freeze", "gnss_pos", "north", 0.0, START_S),), 60.0))
     if "imu" in families:
@@ -100,6 +103,15 @@ def sim_seed(family: str, attacks: tuple, seed: int) -> int:
     are the attacks', not the noise's); the clean drives even, the ones with dropouts odd, so that
     every clean hour is a distinct one."""
     return 2 * seed + bool(attacks) if family == "clean" else seed
+
+
+def phased(family: str, attacks: tuple, duration: float, seed: int) -> tuple[tuple, float]:
+    """A spoof's physics depends on where the vehicle is on its route (along the track it looks like
+    an accelerometer bias until a turn): its start moves 9 s a seed, over the route's first 81 s."""
+    if family != "spoof":
+        return attacks, duration
+    shift = SPOOF_PHASE_S * (seed % 10)
+    return tuple(dataclasses.replace(a, start_s=a.start_s + shift) for a in attacks), duration + shift
 
 
 def detector_config(name: str, settings: tuple[str, ...] = ()):
@@ -137,6 +149,7 @@ class Collector:
 def one(job) -> list[dict]:
     """Simulate one case and seed, replay it through every detector; one row per detector."""
     family, name, attacks, duration, seed, detectors, work, settings = job
+    attacks, duration = phased(family, attacks, duration, seed)
     base = scenarios.load("clean")
     sc = dataclasses.replace(base, name="eval", duration_s=duration, attacks=attacks)
     tlog = Path(work) / f"{abs(hash((name, seed)))}.tlog"
@@ -348,6 +361,7 @@ def figure(case: str, seed: int, out: Path) -> int:
             ["step", "ramp", "spoof", "freeze", "imu", "early", "clean"])), file=sys.stderr)
         return 2
     family, name, attacks, duration = found[0]
+    attacks, duration = phased(family, attacks, duration, seed)
     out.mkdir(parents=True, exist_ok=True)
     stem = out / f"{name.replace(' ', '_').replace('/', '_')}-seed{seed}"
     sc = dataclasses.replace(scenarios.load("clean"), name="eval", duration_s=duration, attacks=attacks)
