@@ -18,7 +18,8 @@ its heading turns with the magnetometer's again (its own innovation agrees as so
 
 Which sensor an alarm names (`_isolate`): a heading alarm (magnetometer, GNSS velocity) compares
 how three sources turned: the gyro, the magnetometer and, on a ground vehicle, the GNSS course; the
-magnetometer and the course alike against the gyro means the gyro bent the heading. A GNSS velocity
+magnetometer and the course alike against the gyro means the gyro bent the heading; the gyro and the
+magnetometer alike against the course, that a GNSS velocity (a spoof) pulled it. A GNSS velocity
 alarm whose course agrees with the filter's heading but not with its track (the heading turned by
 the filter's own sideways velocity) names the lateral accelerometer: on wheels only it pushes the
 track sideways. A ground vehicle (`vehicle`, from the autopilot's HEARTBEAT by default) also has
@@ -104,6 +105,7 @@ class Monitor:
         self.excluded: dict[str, int] = {}         # sensor -> time of the last inconsistent innovation
         self._with_receiver: set[str] = set()      # excluded with the receiver, not by an alarm of its own
         self._accel_ref: float | None = None        # a laterally biased accelerometer's bias before the attack
+        self._last_vel = (np.zeros(2), np.eye(2))   # the latest GNSS velocity innovation and its S
         self.detector.reset()
         self._imu_sum = [0.0] * 5                   # ax, ay, yaw rate, m_x, m_y since the last fusion
         self._imu_n = self._mag_n = 0
@@ -252,6 +254,11 @@ class Monitor:
         z_gm, z_gc, z_mc = turns
         if min(abs(z_gm), abs(z_gc)) >= TURN_Z[0] and abs(z_mc) < TURN_Z[1]:
             return "gyro", (), None
+        if sensor == "mag" and abs(z_gm) < TURN_Z[1] and min(abs(z_gc), abs(z_mc)) >= TURN_Z[0]:
+            # the gyro and the magnetometer turned alike, the course away from both: a GNSS velocity
+            # (a spoof) pulled the filter's heading off the magnetometer's; named on its worse axis
+            r, S = self._last_vel
+            return "gnss_vel", (), CHANNELS["gnss_vel"][int(np.argmax(np.abs(r) / np.sqrt(np.diagonal(S))))]
         if sensor == "mag":
             return "mag", (), None
         n = self._course.maxlen // 2
@@ -457,6 +464,8 @@ class Monitor:
     def _test(self, sensor: str, t_us: int, r: np.ndarray, S: np.ndarray) -> tuple[list[Event], bool]:
         """Run the detector on one sensor's innovation; decide whether to fuse it."""
         stat, thr, hits = self.detector.test(sensor, t_us, r, S)
+        if sensor == "gnss_vel":
+            self._last_vel = (r, S)                 # the axis to name if a magnetometer alarm turns out to be it
         names = CHANNELS[sensor]
         events: list[Event] = []
         if sensor not in self.excluded:
@@ -483,8 +492,8 @@ class Monitor:
                         # back to before the CUSUM's run began, its estimate of the onset; a velocity's
                         # run starts late (a spoof's offset grows slowly and the filter absorbs it as an
                         # accelerometer bias): back as far as the history goes
-                        self._rewind_epochs = len(self._epochs) if sensor == "gnss_vel" else \
-                            getattr(self.detector, "run_length", {}).get(sensor, 0)
+                        self._rewind_epochs = getattr(self.detector, "run_length", {}).get(sensor, 0) \
+                            if sensor == "gnss_pos" else len(self._epochs)
                     if named == "accel" and named != sensor:
                         # the lateral bias the filter had before the CUSUM's run began is the sensor's
                         # own; what it absorbed since is the attack's, given back

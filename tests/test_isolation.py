@@ -104,6 +104,17 @@ def test_a_sideways_accelerometer_bias_is_named_once_and_cleared_after(tmp_path,
         assert all(not isinstance(e, Alarm) or e.sensor == "accel" for e in events), "nothing else blamed"
 
 
+def test_a_spoof_anywhere_on_the_route_names_the_gnss(tmp_path):
+    """Started further along the route (as the evaluation does, 9 s a seed), a northward spoof meets
+    straights and turns: along a straight it waits for a turn; where it pulls the filter's heading
+    first, the magnetometer alarms, but the gyro and magnetometer turned alike and the course apart."""
+    for seed in (1, 2, 8):
+        start = START_S + 9.0 * seed
+        tlog, truth = simulate(tmp_path, Attack("spoof", "gnss_pos", "north", 0.05, start), seed, start + 75.0)
+        a = first_alarm(events_of(tlog), truth["attacks"][0]["start_gnss_index"])
+        assert a.sensor == "gnss_vel" and set(a.ambiguous_with) <= {"accel"}, f"seed {seed}: {a}"
+
+
 def errors(events, truth):
     """(t_us, position error) of every Estimate against the simulator's truth."""
     est = [e for e in events if isinstance(e, Estimate)]
