@@ -40,6 +40,7 @@ class LogConfig:
     rotate_mb: float = 256.0                # start a new file past this size (0: never)
     rotate_s: float = 3600.0                # or past this much vehicle time (0: never)
     chunk_kb: float = 256.0                 # a crash loses at most one chunk
+    keep_mb: float = 2000.0                 # a directory's guard-*.mcap files, at most (the oldest go; 0: all kept)
 
 
 @dataclass(frozen=True)

@@ -100,6 +100,7 @@ class Daemon:
         if self.mcap_path:
             c = self.cfg.log
             self.log = McapLog(self.mcap_path, rotate_mb=c.rotate_mb or None, rotate_s=c.rotate_s or None,
+                               keep_mb=c.keep_mb or None,
                                chunk_size=int(c.chunk_kb * 1024),
                                metadata={"config": self.cfg.source_text, "connect": self.connect})
         self.out(f"guard: listening on {self.connect}" + (f", logging to {self.mcap_path}" if self.log else ""))

@@ -94,14 +94,16 @@ class McapLog:
     """Writes samples and events to MCAP files, rotated by size (`rotate_mb`) or vehicle time (`rotate_s`).
 
     `path_or_dir` is a file (`run.mcap`, then `run-1.mcap`, ... on rotation; overwritten) or a directory
-    (`guard-YYYYmmdd-HHMMSS[-N].mcap`, UTC wall clock, never overwritten; created when missing).
+    (`guard-YYYYmmdd-HHMMSS[-N].mcap`, UTC wall clock, never overwritten; created when missing). In a
+    directory, `keep_mb` bounds guard's own files: each time one opens, the oldest go until the rest fit.
     I/O errors never reach the caller: they are logged once per outage, counted in `errors`, and messages
     are dropped (`lost_messages`) until a new file opens at the next rotation or after RETRY_S of vehicle time.
     """
 
     def __init__(self, path_or_dir: str, *, rotate_mb: float | None = None, rotate_s: float | None = None,
-                 chunk_size: int = 256 * 1024, metadata: dict[str, str] | None = None):
+                 chunk_size: int = 256 * 1024, metadata: dict[str, str] | None = None, keep_mb: float | None = None):
         self._target = os.fspath(path_or_dir)
+        self._keep_bytes = None if not keep_mb else int(keep_mb * 1e6)
         self._is_dir = os.path.isdir(self._target) or not self._target.endswith(".mcap")
         self._rotate_bytes = None if rotate_mb is None else int(rotate_mb * 1e6)
         self._rotate_us = None if rotate_s is None else int(rotate_s * 1e6)
@@ -262,7 +264,26 @@ class McapLog:
         self.path, self._failed, self._retry_at_us = path, False, None
         self.files.append(path)
         self._ids, self._pos, self._unflushed, self._t0_us = {}, self._stream.tell(), 0, None
+        if self._is_dir and self._keep_bytes is not None:
+            self._prune()
         return True
+
+    def _prune(self) -> None:
+        """Delete guard's oldest files in the directory until the others fit in keep_mb (the one being
+        written stays). Their names are UTC times: sorted, the oldest come first."""
+        names = sorted(n for n in os.listdir(self._target) if n.startswith("guard-") and n.endswith(".mcap"))
+        old = [os.path.join(self._target, n) for n in names if os.path.join(self._target, n) != self.path]
+        sizes = {p: os.path.getsize(p) for p in old}
+        total = sum(sizes.values())
+        for p in old:
+            if total <= self._keep_bytes:
+                break
+            try:
+                os.remove(p)
+                log.info("MCAP log %s deleted: the directory holds at most its keep_mb", p)
+            except OSError as exc:
+                log.warning("MCAP log %s could not be deleted: %s", p, exc.strerror)
+            total -= sizes[p]
 
     def _finish(self, t_us: int | None) -> None:
         if self._writer is None:

@@ -4,6 +4,7 @@ import errno
 import io
 import json
 import logging
+import os
 import re
 
 import numpy as np
@@ -156,6 +157,24 @@ def test_rotation_by_time_in_directory(tmp_path):
         assert re.fullmatch(r"guard-\d{8}-\d{6}(-\d+)?\.mcap", path.rsplit("/", 1)[-1])
         msgs, _, _ = read(path)
         assert msgs[-1][3].log_time - msgs[0][3].log_time < 10e9
+
+
+def test_a_directory_keeps_its_newest_files_within_keep_mb(tmp_path):
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    old = [logs / f"guard-2026010{d}-120000.mcap" for d in range(1, 6)]     # five days, 1 MB each
+    for p in old:
+        p.write_bytes(b"\0" * 1_000_000)
+    other = logs / "notes.txt"
+    other.write_text("not guard's: never touched\n")
+    log = McapLog(str(logs), rotate_s=10.0, keep_mb=2.5)
+    for i in range(250):                     # 25 s of vehicle time: three files of its own
+        step(log, i)
+    log.close()
+    assert [p.exists() for p in old] == [False, False, False, True, True], "the oldest went first"
+    assert other.exists() and all(os.path.exists(p) for p in log.files), "its own new files stay"
+    assert sum(p.stat().st_size for p in logs.glob("guard-*.mcap")) <= 2.5e6 + max(
+        os.path.getsize(p) for p in log.files)
 
 
 def test_unwritable_directory_goes_quiet_and_retries(tmp_path, caplog):
