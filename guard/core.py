@@ -52,6 +52,13 @@ IMU_BLOCKS = (("mag", 0, 1), ("gyro", 1, 2), ("accel", 2, 4))
 IMU_BLOCKS_NO_MAG = (("gyro", 0, 1), ("accel", 1, 3))
 
 
+def state_minus(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a - b for two filter states, the heading's difference wrapped to (-pi, pi]."""
+    d = a - b
+    d[TH] = math.remainder(d[TH], math.tau)
+    return d
+
+
 @dataclass(frozen=True)
 class MonitorConfig:
     filter: FilterConfig = field(default_factory=FilterConfig)
@@ -187,17 +194,14 @@ class Monitor:
         e, n = self.frame.to_en(fix.lat_deg, fix.lon_deg)
         events += self._measure("gnss_pos", fix.t_us, np.array([e, n]), xd[:2].copy(), H_POS, self.R_pos)
         if delayed:                 # the position's correction, carried to the state the velocity is tested on
-            dx = ekf.x - before
-            dx[TH] = math.remainder(dx[TH], math.tau)
-            xd = xd + dx
+            xd = xd + state_minus(ekf.x, before)
         if self.cfg.filter.use_gnss_velocity and fix.vel_n_mps is not None:
             self._witness_course(fix, xd)
             hx, H = gnss_velocity_model(xd)
             events += self._measure("gnss_vel", fix.t_us, np.array([fix.vel_e_mps, fix.vel_n_mps]), hx, H,
                                     self.R_vel)
         if delayed:                 # the correction applies to the stored states too: the next fix sees it
-            dx = ekf.x - before
-            dx[TH] = math.remainder(dx[TH], math.tau)
+            dx = state_minus(ekf.x, before)
             for _, x in self._states:
                 x += dx
         x, f = ekf.x, self.frame
@@ -216,9 +220,7 @@ class Monitor:
         pts = [*states, (self.t_us, self.ekf.x)]
         for (t0, x0), (t1, x1) in zip(pts, pts[1:]):
             if t0 <= then < t1:
-                dx = x1 - x0
-                dx[TH] = math.remainder(dx[TH], math.tau)
-                return x0 + dx * ((then - t0) / (t1 - t0))
+                return x0 + state_minus(x1, x0) * ((then - t0) / (t1 - t0))
         return pts[0][1].copy()     # older than the history (the first fixes): the oldest state there is
 
     def _witness_course(self, fix: GnssFix, x: np.ndarray) -> None:
@@ -495,12 +497,9 @@ class Monitor:
                         self._rewind_epochs = getattr(self.detector, "run_length", {}).get(sensor, 0) \
                             if sensor == "gnss_pos" else len(self._epochs)
                     if named == "accel" and named != sensor:
-                        # the lateral bias the filter had before the CUSUM's run began is the sensor's
-                        # own; what it absorbed since is the attack's, given back
-                        run = getattr(self.detector, "run_length", {}).get(sensor, 0)
-                        before = self._epochs[-min(max(run, 1), len(self._epochs))][1] if self._epochs \
-                            else self.ekf.x
-                        self._accel_ref = float(before[BAY])
+                        # as in a rewind, the bias of the oldest epoch kept is the sensor's own; what the
+                        # filter absorbed since is the attack's, given back
+                        self._accel_ref = float((self._epochs[0][1] if self._epochs else self.ekf.x)[BAY])
                         self.ekf.x[BAY] = self._accel_ref
             fused = sensor not in self.excluded
         else:
