@@ -4,7 +4,9 @@ Live MAVLink, tlog replay, the CAN path and the tests all run this same object.
 
 Per IMU sample: level the IMU with the autopilot's roll and pitch (a flying drone is tilted),
 predict the filter to the sample's time, form the innovations of heading, gyro and accelerometer,
-test them, fuse them. Per GNSS sample: the same with position and velocity, then an Estimate.
+test them, fuse them. Per GNSS sample: the same with position and velocity, then an Estimate. A
+GNSS alarm rewinds the filter to before the attack (`_rewind`) at the next sample, once the alarm
+is out; the alarm epoch's Estimate waits for it and comes out with that sample's events.
 An IMU faster than `imu_fusion_hz` is averaged down to that rate first (as PX4's EKF2 does): the
 mean of the samples since the last fusion is fused at the last one's time, which keeps a 250 Hz
 IMU affordable on a companion computer. The noise model is left as configured (conservative).
@@ -131,6 +133,7 @@ class Monitor:
         # with a receiver latency: the filter's state after each IMU fusion, (t_us, x), back to the latency
         self._states: deque = deque(maxlen=int((self.cfg.filter.gnss_delay_s + 1.0) * fuse_hz) + 2)
         self._rewind_epochs = 0                     # a rewind owed: done at the next step, after the alarm is out
+        self._estimate_owed: tuple[int, int] | None = None   # (t_us, gnss_index) of the alarm's epoch
 
     # -- the step -----------------------------------------------------------------------------
     def step(self, sample) -> list[Event]:
@@ -139,10 +142,13 @@ class Monitor:
             return []
         if isinstance(sample, VehicleType):
             return self._vehicle(sample)
+        events: list[Event] = []
         if self._rewind_epochs:
             self._rewind(self._rewind_epochs)
             self._rewind_epochs = 0
-        events: list[Event] = []
+        if self._estimate_owed:                     # the alarm's epoch, as the rewind left it
+            events.append(self._estimate(*self._estimate_owed))
+            self._estimate_owed = None
         if isinstance(sample, GnssFix):
             self.gnss_index += 1
         timed = not (isinstance(sample, GnssFix) and not sample.fix_ok)    # a no-fix message's time means nothing
@@ -204,10 +210,16 @@ class Monitor:
             dx = state_minus(ekf.x, before)
             for _, x in self._states:
                 x += dx
-        x, f = ekf.x, self.frame
-        events.append(Estimate(fix.t_us, self.gnss_index, float(x[0]), float(x[1]), float(x[TH]), x.copy(),
-                               np.diagonal(ekf.P).copy(), (f.lat0, f.lon0, f.alt0)))
+        if self._rewind_epochs:     # this epoch raised an alarm that rewinds: its estimate comes after that
+            self._estimate_owed = (fix.t_us, self.gnss_index)
+        else:
+            events.append(self._estimate(fix.t_us, self.gnss_index))
         return events
+
+    def _estimate(self, t_us: int, gnss_index: int) -> Estimate:
+        x, f = self.ekf.x, self.frame
+        return Estimate(t_us, gnss_index, float(x[0]), float(x[1]), float(x[TH]), x.copy(),
+                        np.diagonal(self.ekf.P).copy(), (f.lat0, f.lon0, f.alt0))
 
     def _delayed(self, t_us: int) -> np.ndarray:
         """The filter's state gnss_delay_s before t_us, interpolated between the stored IMU-fusion states
