@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .detectors import DetectorConfig, make_detector
-from .ekf import (BAX, BAY, BW, H_IMU, H_IMU_GROUND, H_IMU_NO_MAG, H_IMU_NO_MAG_GROUND, H_POS, N_STATES, TH, VX, VY,
+from .ekf import (BAY, BW, H_IMU, H_IMU_GROUND, H_IMU_NO_MAG, H_IMU_NO_MAG_GROUND, H_POS, N_STATES, TH, VX, VY,
                   FilterConfig, NavEKF, gnss_velocity_model)
 from .events import AMBIGUOUS, CHANNELS, Alarm, Cleared, Estimate, Event, Innovation, Notice, Tested
 from .geo import LocalFrame, declination_rad
@@ -47,7 +47,6 @@ WITNESS_S = 1.0        # s of course residuals weighed when a heading alarm is i
 WITNESS_Z = 2.0        # a witness disagrees with the filter when its mean residual is this many standard errors
 TURN_Z = (3.0, 2.0)    # two heading sources turned differently beyond the first, alike within the second (z)
 RECEIVER = ("gnss_pos", "gnss_vel")                 # one receiver: excluded together
-BIASES = [BW, BAX, BAY]                             # the filter's sensor-bias states
 REWIND_S = 20.0        # s of filter history kept to undo what a GNSS attack fed the filter before its alarm
 # rows of the stacked IMU measurement that belong to each sensor: (sensor, first, last + 1)
 IMU_BLOCKS = (("mag", 0, 1), ("gyro", 1, 2), ("accel", 2, 4))
@@ -309,19 +308,19 @@ class Monitor:
     def _rewind(self, epochs: int) -> None:
         """Undo the last `epochs` GNSS epochs: back to the filter before the attack's first sample was
         fused (a position's CUSUM run gives the onset; a velocity goes back as far as the history
-        does), with the bias states of the oldest epoch kept, then the IMU fusions since, GNSS left out. Up to
-        REWIND_S of IMU (tens of milliseconds), so it runs at the step after the alarm's, once the
-        alarm is out."""
+        does), then the IMU fusions since, GNSS left out. Up to REWIND_S of IMU (tens of
+        milliseconds), so it runs at the step after the alarm's, once the alarm is out."""
         if epochs < 1 or epochs > len(self._epochs):
             return
         t0, x, P = self._epochs[-epochs]
         now, ekf = self.t_us, self.ekf
         delayed, states = self.cfg.filter.gnss_delay_s > 0, [(t0, x.copy())]   # with a receiver latency: re-run states
+        # the bias states come back with the rest: a velocity alarm goes back as far as the history does,
+        # before a spoof the filter took for an accelerometer bias could have fed them; a position's
+        # run start is its onset. (Those of the oldest epoch, taken for every rewind, were the filter's
+        # start-up guesses in the first 20 s: it then coasted on them, and a GNSS that agreed again was
+        # kept out for tens of seconds.)
         ekf.x, ekf.P, t = x.copy(), P.copy(), t0
-        # the sensor biases drift slowly (q_*_bias): take them from the oldest epoch kept, before a slow
-        # attack the CUSUM caught late could have fed them (a spoof along the track is an accelerometer
-        # bias to the filter until the vehicle turns)
-        ekf.x[BIASES] = self._epochs[0][1][BIASES]
         for t_imu, z, H, R, angle in self._imu_log:
             if t_imu <= t0:
                 continue

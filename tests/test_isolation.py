@@ -162,3 +162,20 @@ def test_vehicle_class_follows_the_heartbeat_unless_configured():
     fixed = Monitor(parse({"monitor": {"vehicle": "air"}}, "test").monitor)
     assert fixed.step(VehicleType(True)) == [] and not fixed.ground
     assert Monitor(parse({"monitor": {"vehicle": "ground"}}, "test").monitor).ground
+
+
+def test_a_short_attack_early_in_the_drive_does_not_keep_the_receiver_out(tmp_path):
+    """A 10 m step of 2 s at t = 20 s, another at 30 s (the live bench's pattern). The rewind of the
+    first goes back to the filter of its onset, biases included (the oldest epoch's, taken before,
+    were start-up guesses: coasting on them kept a receiver that agreed again out for 47 s in seed 1),
+    so the receiver is back before the second step, which raises its own alarm on its first sample."""
+    attacks = tuple(Attack("step", "gnss_pos", "north", 10.0, t, duration_s=2.0) for t in (20.0, 30.0))
+    for seed in range(5):
+        sc = dataclasses.replace(scenario.load("clean"), name="repeat", duration_s=40.0, attacks=attacks)
+        tlog = tmp_path / f"repeat-{seed}.tlog"
+        truth = run(sc, seed, tlog=str(tlog))
+        events = events_of(tlog)
+        alarms = [e.gnss_index for e in events if isinstance(e, Alarm)]
+        assert alarms == [a["start_gnss_index"] for a in truth["attacks"]], f"seed {seed}: alarms at {alarms}"
+        back = [e.t_us / 1e6 for e in events if isinstance(e, Cleared) and e.sensor == "gnss_pos"]
+        assert back and back[0] < 30.0, f"seed {seed}: position re-admitted at {back}"
