@@ -108,21 +108,33 @@ class Daemon:
         self.notifier.ready(f"listening on {self.connect}")
 
     def main_loop(self) -> None:
-        last_data = time.monotonic()
-        silent = False
+        # the time each stream last sent a sample (a HEARTBEAT or an ATTITUDE alone is not data), and
+        # which streams were last reported silent: an autopilot that streams GNSS but not the IMU
+        # (ArduPilot sends RAW_IMU only when its SRn_RAW_SENS rate is set) is told so
+        last = dict.fromkeys(("GNSS", "IMU"), time.monotonic())
+        silent: set[str] = set()
+        timeout = self.cfg.link.link_timeout_s
         while not self.should_exit:
             self.notifier.watchdog()
             if self.link is not None:
                 self.link.tick(self.ratio)
             sample = self.source.poll(POLL_S)
-            if isinstance(sample, (GnssFix, ImuSample)):    # a HEARTBEAT or an ATTITUDE alone is not data
-                last_data = time.monotonic()
-                if silent:
-                    silent = False
+            now = time.monotonic()
+            if isinstance(sample, GnssFix):
+                last["GNSS"] = now
+            elif isinstance(sample, ImuSample):
+                last["IMU"] = now
+            quiet = {k for k, t in last.items() if now - t > timeout}
+            if quiet != silent:
+                if not quiet:
                     self._operator("data is back", level="info")
-            elif not silent and time.monotonic() - last_data > self.cfg.link.link_timeout_s:
-                silent = True
-                self._operator(f"no GNSS or IMU data for {self.cfg.link.link_timeout_s:g} s: waiting")
+                elif quiet - silent:                # a stream fell silent
+                    what = "GNSS or IMU" if len(quiet) == 2 else next(iter(quiet))
+                    self._operator(f"no {what} data for {timeout:g} s: waiting")
+                else:                               # one came back, the other is still silent
+                    self._operator(f"{next(iter(silent - quiet))} data is back, still no "
+                                   f"{next(iter(quiet))} data", level="info")
+                silent = quiet
             if sample is not None:
                 self.handle(sample)
 

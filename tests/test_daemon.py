@@ -694,3 +694,20 @@ def test_shipped_config_is_the_defaults():
     from guard.config import Config, load
     shipped = load(str(ROOT / "configs" / "guard.toml"))
     assert dataclasses.replace(shipped, source_text="") == Config()
+
+
+def test_a_link_without_the_imu_stream_says_so(caplog):
+    """GPS_RAW_INT at 10 Hz but no RAW_IMU (an autopilot whose raw-sensor stream is off): the warning
+    names the missing stream, and only it."""
+    enc, items = scenario_messages("paper", until_s=3)
+    gps = [it for it in items if it[1].get_type() == "GPS_RAW_INT"]
+    with in_process({"link": {"link_timeout_s": 0.5}}) as g:
+        peer = g.connect()
+        for buf, _ in frames(enc, gps[:20]):
+            peer.write(buf)
+            time.sleep(0.1)
+        got = drain(peer)
+        assert g.d.samples >= 15, "the fixes reached the daemon"
+    warnings = texts(got, WARNING)
+    assert any("no IMU data for 0.5 s" in t for t in warnings), texts(got)
+    assert not any("GNSS" in t for t in warnings), warnings
