@@ -20,9 +20,11 @@ def _replay(args) -> int:
     from .config import load
     from .replay import Trace, replay, truth_beside, write_report
     cfg = load(args.config)
+    from dataclasses import replace
     if args.detector:
-        from dataclasses import replace
         cfg = replace(cfg, monitor=replace(cfg.monitor, detector=replace(cfg.monitor.detector, name=args.detector)))
+    if args.system_id is not None:
+        cfg = replace(cfg, link=replace(cfg.link, system_id=args.system_id))
     listeners = []
     trace = Trace() if args.plot else None
     if trace:
@@ -49,6 +51,9 @@ def _replay(args) -> int:
         skipped = sum(report["skipped"].values())
         print(f"{args.file}: {report['duration_s']:.1f} s, {report['gnss_samples']} GNSS samples, "
               f"{len(alarms)} alarm(s), {first}; skipped {skipped}")
+        if not report["gnss_samples"] and report["skipped"].get("other_system"):
+            print(f"{args.file}: every message came from another system than {cfg.link.system_id}: "
+                  "try --system-id 0 (every system)", file=sys.stderr)
     return 0
 
 
@@ -103,6 +108,12 @@ def _recover(args) -> int:
     return 0
 
 
+def _system_id(text: str) -> int:
+    if not text.isdigit() or int(text) > 255:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a MAVLink system id (0..255)")
+    return int(text)
+
+
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="guard", description="Detect attacks on a vehicle's navigation sensors.")
     p.add_argument("--version", action="version", version=f"guard {__version__}")
@@ -119,6 +130,8 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("file", help="a .tlog file")
     r.add_argument("--config", help="TOML config file")
     r.add_argument("--detector", choices=["cusum", "paper", "gate", "chi2"], help="override detector.name")
+    r.add_argument("--system-id", type=_system_id, help="the autopilot's MAVLink system id (overrides link.system_id; "
+                                                 "0: every system)")
     r.add_argument("--report", help="write the JSON report here ('-' for stdout)")
     r.add_argument("--plot", help="write the three-panel figure here (.png)")
     r.add_argument("--mcap", help="write an MCAP log here")

@@ -320,3 +320,23 @@ def test_cli_report_and_plot_files(paper, tmp_path):
     assert len(png) > 1000
     assert png.startswith(b"\x89PNG\r\n\x1a\n")
     assert "400" in p.stdout          # the one-line summary names the first alarm's GNSS sample
+
+
+def test_cli_replay_of_another_system_id_says_how_to_read_it(paper, tmp_path):
+    """A tlog from an autopilot with system id 7: replayed as is, nothing is read and the CLI says
+    why; with --system-id 7 (or 0, every system) it is read whole and the attack is found."""
+    enc = mavlink.MAVLink(None, srcSystem=7, srcComponent=1)
+    out = bytearray()
+    for f in paper[2]:
+        msg = enc.decode(bytearray(f.frame))
+        out += struct.pack(">Q", f.prefix) + msg.pack(enc)
+    path = write(tmp_path, "sys7.tlog", bytes(out))
+    p = guard_cli("replay", path, cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    assert "0 GNSS samples" in p.stdout and "--system-id 0" in p.stderr, (p.stdout, p.stderr)
+    for sid in ("7", "0"):
+        p = guard_cli("replay", path, "--system-id", sid, "--report", "-", cwd=tmp_path)
+        report = json.loads(p.stdout)
+        assert report["gnss_samples"] == 801 and report["alarms"][0]["gnss_index"] == 400, sid
+    p = guard_cli("replay", path, "--system-id", "300", cwd=tmp_path)
+    assert p.returncode != 0 and "--system-id" in p.stderr and "Traceback" not in p.stderr, p.stderr
