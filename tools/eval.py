@@ -386,11 +386,22 @@ def main(argv=None) -> int:
     p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                    help="change one config key for every detector (a TOML value: 0.05, '\"air\"')")
+    p.add_argument("--config", help="a guard TOML file: its keys apply to every detector, as --set (which wins)")
     p.add_argument("--summarise", metavar="DIR", help="summarise DIR/runs.csv of an earlier campaign again")
     p.add_argument("--resume", action="store_true",
                    help="keep the runs an interrupted campaign left in OUT/runs.partial.jsonl (same code only)")
     p.add_argument("--figure", nargs=2, metavar=("CASE", "SEED"), help="simulate one run; keep its tlog, report, figure")
     args = p.parse_args(argv)
+    if args.config:
+        try:
+            table = tomllib.loads(Path(args.config).read_text())
+        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as e:
+            print(f"eval: --config {args.config}: {getattr(e, 'strerror', None) or e}", file=sys.stderr)
+            return 2
+        if any(not isinstance(t, dict) for t in table.values()):
+            print(f"eval: --config {args.config}: every key belongs in a [section]", file=sys.stderr)
+            return 2
+        args.set = [f"{s}.{k}={json.dumps(v)}" for s, t in table.items() for k, v in t.items()] + args.set
     if args.figure:
         return figure(args.figure[0], int(args.figure[1]), Path(args.out))
     todo = cases(args.families)
