@@ -180,13 +180,14 @@ class Monitor:
         events: list[Event] = []
         if not fix.fix_ok:
             self.skipped["gnss_no_fix"] += 1
-            if self.ekf is not None and not self.gnss_lost:
+            if not self.gnss_lost:
                 self.gnss_lost = True
-                events.append(Notice(fix.t_us, "warning", "GNSS fix lost: coasting on the IMU"))
+                events.append(Notice(fix.t_us, "warning", "GNSS fix lost: coasting on the IMU" if self.ekf
+                                     else "GNSS without a fix: monitoring starts at the first fix"))
             return events
         if self.gnss_lost:
             self.gnss_lost = False
-            events.append(Notice(fix.t_us, "info", "GNSS fix back"))
+            events.append(Notice(fix.t_us, "info", "GNSS fix back" if self.ekf else "GNSS fix: monitoring starts"))
         if self.ekf is None:
             return events + self._initialise(fix)
         self._advance(fix.t_us)

@@ -340,3 +340,22 @@ def test_cli_replay_of_another_system_id_says_how_to_read_it(paper, tmp_path):
         assert report["gnss_samples"] == 801 and report["alarms"][0]["gnss_index"] == 400, sid
     p = guard_cli("replay", path, "--system-id", "300", cwd=tmp_path)
     assert p.returncode != 0 and "--system-id" in p.stderr and "Traceback" not in p.stderr, p.stderr
+
+
+def test_a_receiver_without_a_fix_at_the_start_is_reported(tmp_path):
+    """The first 3 s of GPS_RAW_INT carry no fix (a receiver still acquiring): said once, and again
+    when monitoring starts; the attack-free drive raises nothing else."""
+    sim = Simulation(dataclasses.replace(scn.load("clean"), duration_s=15.0), 2)
+    enc, out, k = sim.encoder, bytearray(), 0
+    for t_us, messages in sim.ticks():
+        for msg in messages:
+            if msg.get_type() == "GPS_RAW_INT":
+                if k < 30:
+                    msg = enc.gps_raw_int(t_us, 0.0, 0.0, 0.0, 0.0, 0.0, 99.0, 9.9, fix_type=1)
+                k += 1
+            out += struct.pack(">Q", TLOG_EPOCH_US + t_us) + enc.pack(msg)
+    report = replay(write(tmp_path, "acquiring.tlog", bytes(out)))
+    texts = [n["text"] for n in report["notices"]]
+    assert [t for t in texts if "fix" in t] == ["GNSS without a fix: monitoring starts at the first fix",
+                                                "GNSS fix: monitoring starts"], texts
+    assert report["alarms"] == [] and report["skipped"]["gnss_no_fix"] == 30
