@@ -423,8 +423,10 @@ def main(argv=None) -> int:
             except (ConfigError, tomllib.TOMLDecodeError) as e:
                 print(f"eval: --set: {e}", file=sys.stderr)
                 return 2
-            jobs = [(f, n, a, d, seed, args.detectors, work, tuple(args.set)) for f, n, a, d in todo
-                    for seed in range(args.seeds)]
+            # seed by seed, every case within each: what a long campaign has done when it is stopped
+            # covers every case alike
+            jobs = [(f, n, a, d, seed, args.detectors, work, tuple(args.set)) for seed in range(args.seeds)
+                    for f, n, a, d in todo]
             if (out / PARTIAL).exists() and not args.resume:
                 print(f"eval: {out / PARTIAL} holds the runs of an interrupted campaign: --resume to go on "
                       "with them, or delete it", file=sys.stderr)
