@@ -318,9 +318,8 @@ class Monitor:
         delayed, states = self.cfg.filter.gnss_delay_s > 0, [(t0, x.copy())]   # with a receiver latency: re-run states
         # the bias states come back with the rest: a velocity alarm goes back as far as the history does,
         # before a spoof the filter took for an accelerometer bias could have fed them; a position's
-        # run start is its onset. (Those of the oldest epoch, taken for every rewind, were the filter's
-        # start-up guesses in the first 20 s: it then coasted on them, and a GNSS that agreed again was
-        # kept out for tens of seconds.)
+        # run start is its onset. (Not the oldest epoch's for every rewind: in the filter's first 20 s
+        # those are start-up guesses, and coasting on them keeps a GNSS that agrees again out.)
         ekf.x, ekf.P, t = x.copy(), P.copy(), t0
         for t_imu, z, H, R, angle in self._imu_log:
             if t_imu <= t0:

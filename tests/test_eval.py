@@ -72,6 +72,23 @@ def test_one_run_on_request(harness, tmp_path, capsys):
     assert "the cases are" in capsys.readouterr().err
 
 
+def test_one_run_with_a_config_file(harness, tmp_path, capsys):
+    """--config applies a guard TOML file, as --set does: the same run replayed with a heading
+    trusted 100 times less finds the gyro bias later (the heading is what shows it); a key guard
+    does not know stops the harness with the key named."""
+    case, stem = "gyro z bias 0.05 rad/s", "gyro_z_bias_0.05_rad_s-seed1"
+    first = {}
+    for label, extra in (("default", []), ("loose", ["--config", str(tmp_path / "loose.toml")])):
+        (tmp_path / "loose.toml").write_text("[filter]\nheading_sigma_rad = 3.0\n")
+        assert harness.main(["--figure", case, "1", "--out", str(tmp_path / label), *extra]) == 0
+        alarms = json.loads((tmp_path / label / f"{stem}.json").read_text())["alarms"]
+        first[label] = alarms[0]["gnss_index"] if alarms else 10 ** 9
+    assert first["loose"] > first["default"], first
+    (tmp_path / "bad.toml").write_text("[filter]\nq_vel = 1\n")
+    assert harness.main(["--config", str(tmp_path / "bad.toml"), "--families", "spoof", "--out", str(tmp_path)]) == 2
+    assert "filter.q_vel: unknown key" in capsys.readouterr().err
+
+
 def test_delay_is_near_the_lorden_bound_for_steps(summary):
     for ch in ("north", "east"):
         s = summary[(f"step {ch} 2 m", "cusum")]

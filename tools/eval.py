@@ -351,8 +351,9 @@ def plots(summary: list[dict], rows: list[dict], out: Path) -> None:
         ax.legend(fontsize=8); fig.tight_layout(); fig.savefig(out / "delay_vs_step.png", dpi=110); plt.close(fig)
 
 
-def figure(case: str, seed: int, out: Path) -> int:
-    """One run of one case: its tlog and truth, the replay report and the three-panel figure."""
+def figure(case: str, seed: int, out: Path, settings: tuple[str, ...] = ()) -> int:
+    """One run of one case: its tlog and truth, the replay report (cusum, with `settings`) and the
+    three-panel figure."""
     from guard.plot import plot
     from guard.replay import Trace, replay, write_report
     found = [c for c in cases(["step", "ramp", "spoof", "freeze", "imu", "early", "clean"]) if c[1] == case]
@@ -367,7 +368,7 @@ def figure(case: str, seed: int, out: Path) -> int:
     sc = dataclasses.replace(scenarios.load("clean"), name="eval", duration_s=duration, attacks=attacks)
     truth = run(sc, sim_seed(family, attacks, seed), tlog=f"{stem}.tlog")
     trace = Trace()
-    report = replay(f"{stem}.tlog", listeners=(trace,))
+    report = replay(f"{stem}.tlog", detector_config("cusum", settings), listeners=(trace,))
     write_report(report, f"{stem}.json")
     plot(trace, report, f"{stem}.png", truth)
     first = report["alarms"][0] if report["alarms"] else None
@@ -402,8 +403,13 @@ def main(argv=None) -> int:
             print(f"eval: --config {args.config}: every key belongs in a [section]", file=sys.stderr)
             return 2
         args.set = [f"{s}.{k}={json.dumps(v)}" for s, t in table.items() for k, v in t.items()] + args.set
+    try:                                             # a bad key stops here, named, before any work
+        detector_config("cusum", tuple(args.set))
+    except (ConfigError, tomllib.TOMLDecodeError) as e:
+        print(f"eval: {'--config ' + args.config + ' or ' if args.config else ''}--set: {e}", file=sys.stderr)
+        return 2
     if args.figure:
-        return figure(args.figure[0], int(args.figure[1]), Path(args.out))
+        return figure(args.figure[0], int(args.figure[1]), Path(args.out), tuple(args.set))
     todo = cases(args.families)
     if args.quick:
         args.seeds = min(args.seeds, 3)
@@ -418,11 +424,6 @@ def main(argv=None) -> int:
         rows = read_runs(out / "runs.csv")
     else:
         with tempfile.TemporaryDirectory() as work:
-            try:                                             # a bad key stops here, named, before any work
-                detector_config("cusum", tuple(args.set))
-            except (ConfigError, tomllib.TOMLDecodeError) as e:
-                print(f"eval: --set: {e}", file=sys.stderr)
-                return 2
             # seed by seed, every case within each: what a long campaign has done when it is stopped
             # covers every case alike
             jobs = [(f, n, a, d, seed, args.detectors, work, tuple(args.set)) for seed in range(args.seeds)
