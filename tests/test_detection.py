@@ -4,6 +4,8 @@ Each run is simulated to a real tlog and replayed through the same path as `guar
 """
 
 import json
+import tomllib
+from pathlib import Path
 
 import pytest
 
@@ -80,3 +82,17 @@ def test_ardupilot_sitl_logs_are_read_to_the_end_without_alarm(shared, name):
     assert report["gnss_samples"] == report["messages"]["GPS_RAW_INT"]
     assert report["skipped"].get("truncated", 0) == 0 and report["skipped"].get("bad_crc", 0) == 0
     assert report["duration_s"] > 200
+
+
+@pytest.mark.parametrize("name", ["rover_clean_turns", "copter_clean_straight"])
+def test_the_tight_profile_needs_the_receiver_latency_on_ardupilot_logs(shared, name):
+    """configs/guard-tight.toml false-alarms on ArduPilot's SITL logs with the latency left at 0, as
+    its header says, and is quiet with the latency tools/gnss_delay.py suggests for them (0.05 s)."""
+    path = shared / "data" / "ardupilot-sitl" / f"{name}.tlog"
+    if not path.exists():
+        pytest.skip(f"{path} is not here (the shared data folder sits beside the project)")
+    table = tomllib.loads((Path(__file__).parent.parent / "configs" / "guard-tight.toml").read_text())
+    assert replay(str(path), parse(table, "tight"))["alarms"], "quiet without the latency"
+    table["filter"]["gnss_delay_s"] = 0.05
+    report = replay(str(path), parse(table, "tight, 0.05 s"))
+    assert report["alarms"] == [], json.dumps(report["alarms"][:3])
