@@ -147,6 +147,12 @@ def load(path: str | None) -> Config:
     """Read and validate a config file (None: all defaults)."""
     if path is None:
         return Config()
+    data, text = read(path)
+    return parse(data, path, text)
+
+
+def read(path: str) -> tuple[dict, str]:
+    """A config file's TOML table and text, not yet validated; ConfigError names the file."""
     try:
         with open(path, "rb") as f:
             text = f.read().decode()
@@ -158,4 +164,4 @@ def load(path: str | None) -> Config:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{path}: {e}") from None
-    return parse(data, path, text)
+    return data, text

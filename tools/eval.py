@@ -54,7 +54,7 @@ sys.path.insert(0, str(ROOT))
 
 import numpy as np                               # noqa: E402
 
-from guard.config import parse                   # noqa: E402
+from guard.config import parse, read as read_config   # noqa: E402
 from guard.core import Monitor                   # noqa: E402
 from guard.errors import ConfigError             # noqa: E402
 from guard.events import Alarm, Estimate, Tested  # noqa: E402
@@ -394,19 +394,17 @@ def main(argv=None) -> int:
     p.add_argument("--figure", nargs=2, metavar=("CASE", "SEED"), help="simulate one run; keep its tlog, report, figure")
     args = p.parse_args(argv)
     if args.config:
-        try:
-            table = tomllib.loads(Path(args.config).read_text())
-        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as e:
-            print(f"eval: --config {args.config}: {getattr(e, 'strerror', None) or e}", file=sys.stderr)
-            return 2
-        if any(not isinstance(t, dict) for t in table.values()):
-            print(f"eval: --config {args.config}: every key belongs in a [section]", file=sys.stderr)
+        try:                                         # guard's own reading and checks: the file and key named
+            table, _ = read_config(args.config)
+            parse(table, args.config)
+        except ConfigError as e:
+            print(f"eval: --config {e}", file=sys.stderr)
             return 2
         args.set = [f"{s}.{k}={json.dumps(v)}" for s, t in table.items() for k, v in t.items()] + args.set
     try:                                             # a bad key stops here, named, before any work
         detector_config("cusum", tuple(args.set))
     except (ConfigError, tomllib.TOMLDecodeError) as e:
-        print(f"eval: {'--config ' + args.config + ' or ' if args.config else ''}--set: {e}", file=sys.stderr)
+        print(f"eval: --set: {e}", file=sys.stderr)
         return 2
     if args.figure:
         return figure(args.figure[0], int(args.figure[1]), Path(args.out), tuple(args.set))
