@@ -508,8 +508,8 @@ class Monitor:
                         self._rewind_epochs = getattr(self.detector, "run_length", {}).get(sensor, 0) \
                             if sensor == "gnss_pos" else len(self._epochs)
                     if named == "accel" and named != sensor:
-                        # as in a rewind, the bias of the oldest epoch kept is the sensor's own; what the
-                        # filter absorbed since is the attack's, given back
+                        # the bias of the oldest epoch kept is taken for the sensor's own; what the filter
+                        # absorbed since is the attack's, given back
                         self._accel_ref = float((self._epochs[0][1] if self._epochs else self.ekf.x)[BAY])
                         self.ekf.x[BAY] = self._accel_ref
             fused = sensor not in self.excluded
