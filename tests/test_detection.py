@@ -4,12 +4,11 @@ Each run is simulated to a real tlog and replayed through the same path as `guar
 """
 
 import json
-import tomllib
 from pathlib import Path
 
 import pytest
 
-from guard.config import parse
+from guard.config import parse, read
 from guard.replay import replay
 from sim import scenario
 from sim.run import run
@@ -91,7 +90,7 @@ def test_the_tight_profile_needs_the_receiver_latency_on_ardupilot_logs(shared, 
     path = shared / "data" / "ardupilot-sitl" / f"{name}.tlog"
     if not path.exists():
         pytest.skip(f"{path} is not here (the shared data folder sits beside the project)")
-    table = tomllib.loads((Path(__file__).parent.parent / "configs" / "guard-tight.toml").read_text())
+    table = read(str(Path(__file__).parent.parent / "configs" / "guard-tight.toml"))[0]
     assert replay(str(path), parse(table, "tight"))["alarms"], "quiet without the latency"
     table["filter"]["gnss_delay_s"] = 0.05
     report = replay(str(path), parse(table, "tight, 0.05 s"))

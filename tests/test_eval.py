@@ -72,6 +72,18 @@ def test_one_run_on_request(harness, tmp_path, capsys):
     assert "the cases are" in capsys.readouterr().err
 
 
+def test_one_run_through_another_detector(harness, tmp_path):
+    """--figure replays through the first of --detectors: the autopilots' gate holds a 10 m step
+    for its persistence time before it alarms, the CUSUM takes it at once."""
+    first = {}
+    for det in ("cusum", "gate"):
+        assert harness.main(["--figure", "step north 10 m", "1", "--out", str(tmp_path / det), "--detectors", det]) == 0
+        report = json.loads((tmp_path / det / "step_north_10_m-seed1.json").read_text())
+        assert report["detector"] == det
+        first[det] = report["alarms"][0]["gnss_index"]
+    assert first["gate"] - first["cusum"] >= 5, first
+
+
 def test_one_run_with_a_config_file(harness, tmp_path, capsys):
     """--config applies a guard TOML file, as --set does: the same run replayed with a heading
     trusted 100 times less finds the gyro bias later (the heading is what shows it); a key guard

@@ -6,13 +6,12 @@ same data leaves them ambiguous, and the alarm says so.
 """
 
 import dataclasses
-import tomllib
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from guard.config import parse
+from guard.config import parse, read
 from guard.core import Monitor
 from guard.events import Alarm, Cleared, Estimate, Notice
 from guard.geo import LocalFrame
@@ -188,7 +187,7 @@ def test_the_tight_profile_catches_a_spoof_along_a_straight_within_15_s(tmp_path
     Seeds 8 and 9 start the spoof where the route runs straight: the defaults wait for the next turn
     (over 15 s in seed 8); the profile catches both within 15 s, naming GNSS velocity (alone, or with
     the accelerometer: along the track the two look alike)."""
-    tight = tomllib.loads((Path(__file__).parent.parent / "configs" / "guard-tight.toml").read_text())
+    tight = read(str(Path(__file__).parent.parent / "configs" / "guard-tight.toml"))[0]
     for seed in (8, 9):
         start = START_S + 9.0 * seed
         tlog, truth = simulate(tmp_path, Attack("spoof", "gnss_pos", "north", 0.05, start), seed, start + 25.0)

@@ -5,6 +5,7 @@ detectors side by side. Prints a table and writes CSV, JSON and figures.
     python tools/eval.py --quick               # a reduced one (a few minutes): what the tests run
     python tools/eval.py --families step ramp --seeds 10 --detectors cusum gate
     python tools/eval.py --figure "gyro z bias 0.05 rad/s" 3   # one run's tlog, report and figure
+    python tools/eval.py --figure "step north 10 m" 0 --detectors gate   # ... through another detector
     python tools/eval.py --families imu --set filter.heading_sigma_rad=0.05   # a config key changed
     python tools/eval.py --summarise out/eval-clean       # the table and figures of an earlier campaign again
     python tools/eval.py ... --resume         # an interrupted campaign, on from where it stopped (same code)
@@ -351,9 +352,9 @@ def plots(summary: list[dict], rows: list[dict], out: Path) -> None:
         ax.legend(fontsize=8); fig.tight_layout(); fig.savefig(out / "delay_vs_step.png", dpi=110); plt.close(fig)
 
 
-def figure(case: str, seed: int, out: Path, settings: tuple[str, ...] = ()) -> int:
-    """One run of one case: its tlog and truth, the replay report (cusum, with `settings`) and the
-    three-panel figure."""
+def figure(case: str, seed: int, out: Path, settings: tuple[str, ...] = (), detector: str = "cusum") -> int:
+    """One run of one case: its tlog and truth, the replay report (`detector`, with `settings`) and
+    the three-panel figure."""
     from guard.plot import plot
     from guard.replay import Trace, replay, write_report
     found = [c for c in cases(["step", "ramp", "spoof", "freeze", "imu", "early", "clean"]) if c[1] == case]
@@ -368,7 +369,7 @@ def figure(case: str, seed: int, out: Path, settings: tuple[str, ...] = ()) -> i
     sc = dataclasses.replace(scenarios.load("clean"), name="eval", duration_s=duration, attacks=attacks)
     truth = run(sc, sim_seed(family, attacks, seed), tlog=f"{stem}.tlog")
     trace = Trace()
-    report = replay(f"{stem}.tlog", detector_config("cusum", settings), listeners=(trace,))
+    report = replay(f"{stem}.tlog", detector_config(detector, settings), listeners=(trace,))
     write_report(report, f"{stem}.json")
     plot(trace, report, f"{stem}.png", truth)
     first = report["alarms"][0] if report["alarms"] else None
@@ -391,7 +392,7 @@ def main(argv=None) -> int:
     p.add_argument("--summarise", metavar="DIR", help="summarise DIR/runs.csv of an earlier campaign again")
     p.add_argument("--resume", action="store_true",
                    help="keep the runs an interrupted campaign left in OUT/runs.partial.jsonl (same code only)")
-    p.add_argument("--figure", nargs=2, metavar=("CASE", "SEED"), help="simulate one run; keep its tlog, report, figure")
+    p.add_argument("--figure", nargs=2, metavar=("CASE", "SEED"), help="simulate one run; keep its tlog, report, figure (the first of --detectors)")
     args = p.parse_args(argv)
     if args.config:
         try:                                         # guard's own reading and checks: the file and key named
@@ -407,7 +408,8 @@ def main(argv=None) -> int:
         print(f"eval: --set: {e}", file=sys.stderr)
         return 2
     if args.figure:
-        return figure(args.figure[0], int(args.figure[1]), Path(args.out), tuple(args.set))
+        # one detector: the first of --detectors (cusum unless told)
+        return figure(args.figure[0], int(args.figure[1]), Path(args.out), tuple(args.set), args.detectors[0])
     todo = cases(args.families)
     if args.quick:
         args.seeds = min(args.seeds, 3)
