@@ -38,7 +38,7 @@ def test_steps_are_caught_at_once_and_isolated(summary):
         for size in ("2", "10"):
             s = summary[(f"step {ch} {size} m", "cusum")]
             assert s["detection_rate"] == 1.0 and s["isolation_rate"] == 1.0
-            assert s["p95_delay_samples"] <= 3          # within 1 s at 10 Hz
+            assert s["p95_delay_samples"] <= 3 and s["p95_delay_s"] <= 1.0     # within 1 s at 10 Hz
             assert s["false_alarms_per_h"] == 0
 
 
