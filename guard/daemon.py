@@ -1,8 +1,8 @@
 """The daemon: `guard run`. Reads a live link, runs the core, alarms on the link, logs to MCAP.
 
 Reads top to bottom: run() -> startup() -> main_loop() -> shutdown(). The signal handlers only set
-a flag (a second SIGINT or SIGTERM forces the exit); shutdown finishes the MCAP file and restores
-the original handlers.
+a flag (a second SIGINT or SIGTERM forces the exit); shutdown finishes the MCAP file, and run()
+restores the original handlers on the way out.
 
 On the MAVLink link it sends, as an onboard computer (component 191):
 - HEARTBEAT at `link.heartbeat_hz`;
@@ -10,7 +10,8 @@ On the MAVLink link it sends, as an onboard computer (component 191):
   NOTICE when it clears; an alarm stays latched while the sensor is excluded, so it is sent once;
 - NAMED_VALUE_FLOAT "grd_ratio": the largest statistic/threshold ratio over all channels since
   the last send (1.0 = at the threshold; at least 1.0 while an alarm is latched), at
-  `link.statistic_hz`.
+  `link.statistic_hz`;
+- a STATUSTEXT longer than 50 bytes in MAVLink 2 chunks (one id, chunk_seq 0, 1, ...).
 """
 
 from __future__ import annotations

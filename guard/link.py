@@ -64,6 +64,7 @@ class MavlinkLink:
         self._next_heartbeat = 0.0
         self._next_stat = 0.0
         self._sent: list[float] = []
+        self._text_id = 0                   # the last long STATUSTEXT's chunk id
         self._pending: deque = deque()
 
     def poll(self, timeout: float):
@@ -138,7 +139,18 @@ class MavlinkLink:
         self._sent.append(now)
         severity = {"critical": mavlink.MAV_SEVERITY_CRITICAL, "warning": mavlink.MAV_SEVERITY_WARNING}.get(
             level, mavlink.MAV_SEVERITY_NOTICE)
-        self._send(lambda m: m.statustext_send(severity, text.encode()[:50]))
+        data = text.encode()
+        if len(data) <= 50:
+            self._send(lambda m: m.statustext_send(severity, data))
+            return
+        # longer: MAVLink 2 chunks (id, chunk_seq), which ground stations join; a chunk shorter than 50
+        # bytes ends the text (an empty one if it divides evenly)
+        self._text_id = self._text_id % 0xFFFF + 1
+        chunks = [data[i:i + 50] for i in range(0, len(data), 50)]
+        if len(chunks[-1]) == 50:
+            chunks.append(b"")
+        for seq, chunk in enumerate(chunks):
+            self._send(lambda m: m.statustext_send(severity, chunk, id=self._text_id, chunk_seq=seq))
 
     def _send(self, fn) -> None:
         try:

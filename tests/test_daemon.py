@@ -711,3 +711,22 @@ def test_a_link_without_the_imu_stream_says_so(caplog):
     warnings = texts(got, WARNING)
     assert any("no IMU data for 0.5 s" in t for t in warnings), texts(got)
     assert not any("GNSS" in t for t in warnings), warnings
+
+
+def test_a_long_warning_reaches_the_ground_station_whole():
+    """A STATUSTEXT holds 50 bytes; a longer warning goes in MAVLink 2 chunks (one id, chunk_seq 0,
+    1, ...) that a ground station joins: here the one said before the receiver's first fix."""
+    def no_fix_yet(t_us, msg):
+        if msg.get_type() == "GPS_RAW_INT" and t_us < 1e6:
+            msg.fix_type, msg.lat, msg.lon = 1, 0, 0
+    enc, items = scenario_messages("paper", until_s=3, edit=no_fix_yet)
+    with in_process() as g:
+        peer = g.connect()
+        feed(peer, frames(enc, items), g.d)
+        got = drain(peer)
+    chunks = [m for m in got if m.get_type() == "STATUSTEXT" and m.id != 0]
+    assert [m.chunk_seq for m in chunks] == [0, 1] and len({m.id for m in chunks}) == 1, \
+        [(m.id, m.chunk_seq, m.text) for m in chunks]
+    assert len(chunks[0].text) == 50 and chunks[0].severity == chunks[1].severity == WARNING
+    assert "".join(m.text for m in chunks) == "GUARD GNSS without a fix: monitoring starts at the first fix"
+    assert all(len(t) <= 50 for t in texts(got))
