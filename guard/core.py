@@ -311,7 +311,8 @@ class Monitor:
         fused (a position's CUSUM run gives the onset; a velocity goes back as far as the history
         does), then the IMU fusions since, GNSS left out. Up to REWIND_S of IMU (tens of
         milliseconds), so it runs at the step after the alarm's, once the alarm is out."""
-        if epochs < 1 or epochs > len(self._epochs):
+        epochs = min(epochs, len(self._epochs))     # a run longer than the history: as far back as it goes
+        if epochs < 1:
             return
         t0, x, P = self._epochs[-epochs]
         now, ekf = self.t_us, self.ekf
