@@ -51,9 +51,9 @@ def _replay(args) -> int:
         skipped = sum(report["skipped"].values())
         print(f"{args.file}: {report['duration_s']:.1f} s, {report['gnss_samples']} GNSS samples, "
               f"{len(alarms)} alarm(s), {first}; skipped {skipped}")
-        if not report["gnss_samples"] and report["skipped"].get("other_system"):
-            print(f"{args.file}: every message came from another system than {cfg.link.system_id}: "
-                  "try --system-id 0 (every system)", file=sys.stderr)
+    if not report["gnss_samples"] and report["skipped"].get("other_system"):     # stderr: also with --report -
+        print(f"{args.file}: every message came from another system than {cfg.link.system_id}: "
+              "try --system-id 0 (every system)", file=sys.stderr)
     return 0
 
 

@@ -334,6 +334,8 @@ def test_cli_replay_of_another_system_id_says_how_to_read_it(paper, tmp_path):
     p = guard_cli("replay", path, cwd=tmp_path)
     assert p.returncode == 0, p.stderr
     assert "0 GNSS samples" in p.stdout and "--system-id 0" in p.stderr, (p.stdout, p.stderr)
+    p = guard_cli("replay", path, "--report", "-", cwd=tmp_path)       # the report on stdout: said on stderr
+    assert json.loads(p.stdout)["gnss_samples"] == 0 and "--system-id 0" in p.stderr, p.stderr
     for sid in ("7", "0"):
         p = guard_cli("replay", path, "--system-id", sid, "--report", "-", cwd=tmp_path)
         report = json.loads(p.stdout)
