@@ -9,6 +9,7 @@ detectors side by side. Prints a table and writes CSV, JSON and figures.
     python tools/eval.py --families imu --set filter.heading_sigma_rad=0.05   # a config key changed
     python tools/eval.py --summarise out/eval-clean       # the table and figures of an earlier campaign again
     python tools/eval.py ... --resume         # an interrupted campaign, on from where it stopped (same code)
+    python tools/eval.py --families clean --seeds 300 --first-seed 900   # new noise beside seeds 0..899
 
 Families (each a list of cases, each case run over --seeds seeds, attack at t = 30 s unless said):
   step      GNSS position step of 1, 2, 5, 10, 20 m on north and east
@@ -384,6 +385,8 @@ def main(argv=None) -> int:
     p.add_argument("--families", nargs="+", default=["step", "ramp", "spoof", "freeze", "imu", "early", "clean"])
     p.add_argument("--detectors", nargs="+", default=["cusum", "gate", "chi2", "paper"])
     p.add_argument("--seeds", type=int, default=20)
+    p.add_argument("--first-seed", type=int, default=0,
+                   help="seeds FIRST .. FIRST+SEEDS-1: more runs on new noise beside an earlier campaign")
     p.add_argument("--quick", action="store_true", help="3 seeds, fewer cases: a few minutes")
     p.add_argument("--out", default="out/eval")
     p.add_argument("--jobs", type=int, default=2)
@@ -427,8 +430,8 @@ def main(argv=None) -> int:
         with tempfile.TemporaryDirectory() as work:
             # seed by seed, every case within each: what a long campaign has done when it is stopped
             # covers every case alike
-            jobs = [(f, n, a, d, seed, args.detectors, work, tuple(args.set)) for seed in range(args.seeds)
-                    for f, n, a, d in todo]
+            seeds = range(args.first_seed, args.first_seed + args.seeds)
+            jobs = [(f, n, a, d, seed, args.detectors, work, tuple(args.set)) for seed in seeds for f, n, a, d in todo]
             if (out / PARTIAL).exists() and not args.resume:
                 print(f"eval: {out / PARTIAL} holds the runs of an interrupted campaign: --resume to go on "
                       "with them, or delete it", file=sys.stderr)
