@@ -14,8 +14,9 @@ IMU affordable on a companion computer. The noise model is left as configured (c
 A sensor whose test rejects H0 raises an Alarm and is then excluded: its innovations are still
 formed and tested, but no longer fused, so the estimate rides on the other sensors instead of
 following the attack. It is re-admitted (Cleared) when its normalised innovations have stayed
-within `readmit_sigma` for `readmit_s` seconds. GNSS position and velocity come from one receiver
-and go together; a position is not re-admitted while its velocity is still out. A gyro waits until
+within `readmit_sigma` for `readmit_s` seconds (and READMIT_SAMPLES samples). GNSS position and
+velocity come from one receiver and go together; a position is not re-admitted while its velocity
+is still out (and tested: fixes without a velocity do not hold it). A gyro waits until
 its heading turns with the magnetometer's again (its own innovation agrees as soon as it is out).
 
 Which sensor an alarm names (`_isolate`): a heading alarm (magnetometer, GNSS velocity) compares
@@ -47,10 +48,17 @@ WITNESS_S = 1.0        # s of course residuals weighed when a heading alarm is i
 WITNESS_Z = 2.0        # a witness disagrees with the filter when its mean residual is this many standard errors
 TURN_Z = (3.0, 2.0)    # two heading sources turned differently beyond the first, alike within the second (z)
 RECEIVER = ("gnss_pos", "gnss_vel")                 # one receiver: excluded together
+READMIT_SAMPLES = 10   # and at least this many samples in a row (a 1 Hz receiver: 10 s, not 3 samples)
 REWIND_S = 20.0        # s of filter history kept to undo what a GNSS attack fed the filter before its alarm
 # rows of the stacked IMU measurement that belong to each sensor: (sensor, first, last + 1)
 IMU_BLOCKS = (("mag", 0, 1), ("gyro", 1, 2), ("accel", 2, 4))
 IMU_BLOCKS_NO_MAG = (("gyro", 0, 1), ("accel", 1, 3))
+
+
+def keep_since(history: deque, t_us: float, at: int = 0) -> None:
+    """Drop the entries of a history of tuples whose time (item `at`) is older than t_us."""
+    while history and history[0][at] < t_us:
+        history.popleft()
 
 
 def state_minus(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -98,6 +106,7 @@ class Monitor:
         self.H_imu = (H_IMU, H_IMU_GROUND)
         self.H_imu_no_mag = (H_IMU_NO_MAG, H_IMU_NO_MAG_GROUND)
         self.ground = self.cfg.vehicle == "ground"
+        self._receiver = RECEIVER if f.use_gnss_velocity else ("gnss_pos",)     # what one receiver's alarm excludes
         self.skipped: Counter[str] = Counter()
         self.gnss_index = -1
         self.roll = self.pitch = 0.0
@@ -111,6 +120,7 @@ class Monitor:
         self.t_us: int | None = None
         self.gnss_lost = False
         self.excluded: dict[str, int] = {}         # sensor -> time of the last inconsistent innovation
+        self._agreed: Counter[str] = Counter()      # excluded sensor -> consistent samples since then
         self._with_receiver: set[str] = set()      # excluded with the receiver, not by an alarm of its own
         self._accel_ref: float | None = None        # a laterally biased accelerometer's bias before the attack
         self._last_vel = (np.zeros(2), np.eye(2))   # the latest GNSS velocity innovation and its S
@@ -119,16 +129,18 @@ class Monitor:
         self._imu_n = self._mag_n = 0
         self._imu_t: int | None = None              # time of the last fused IMU measurement
         self._last_fix: tuple | None = None         # (lat, lon, v_n, v_e) of the previous fix
-        # the heading sources over 2 WITNESS_S: the GNSS course (ground vehicles, at speed; 10 Hz GNSS
-        # assumed), (r, sigma) against the filter's heading and (t_us, course, speed); the magnetometer,
-        # (t_us, heading, yaw rate)
+        self._last_fix_t: int | None = None         # and its time stamp
+        self._vel_t = -math.inf                     # time of the last GNSS velocity tested
+        # the heading sources over the last 2 WITNESS_S (by time: any GNSS or IMU rate): the GNSS course
+        # (ground vehicles, at speed), (r, sigma) against the filter's heading and (t_us, course, speed);
+        # the magnetometer, (t_us, heading, yaw rate)
         fuse_hz = self.cfg.imu_fusion_hz or 1000.0    # IMU fusions per second, at most
-        self._course: deque = deque(maxlen=int(2 * WITNESS_S * 10))
-        self._mag: deque = deque(maxlen=int(2 * WITNESS_S * fuse_hz))
-        # the filter before each GNSS epoch's fusion, (t_us, x, P), and every IMU fusion since,
-        # (t_us, z, H, R, angle_rows): what a rewind needs
-        self._epochs: deque = deque(maxlen=int(REWIND_S * 10))
-        self._imu_log: deque = deque(maxlen=int(REWIND_S * fuse_hz))
+        self._course: deque = deque()
+        self._mag: deque = deque()
+        # the filter before each GNSS epoch's fusion, (t_us, x, P), over the last REWIND_S, and every
+        # IMU fusion since the oldest of them, (t_us, z, H, R, angle_rows): what a rewind needs
+        self._epochs: deque = deque()
+        self._imu_log: deque = deque()
         # with a receiver latency: the filter's state after each IMU fusion, (t_us, x), back to the latency
         self._states: deque = deque(maxlen=int((self.cfg.filter.gnss_delay_s + 1.0) * fuse_hz) + 2)
         self._rewind_epochs = 0                     # a rewind owed: done at the next step, after the alarm is out
@@ -155,6 +167,9 @@ class Monitor:
                                       or sample.t_us > self.t_us + self.cfg.max_gap_s * 1e6):
             jump = (sample.t_us - self.t_us) / 1e6
             events.append(Notice(sample.t_us, "warning", f"time jumped {jump:+.1f} s: filter re-initialised"))
+            # a new filter fuses every sensor again: a ground station's latched alarms are cleared
+            events += [Cleared(sample.t_us, self.gnss_index, s, c) for s in self.excluded
+                       if s not in self._with_receiver for c in CHANNELS[s]]
             self._reset()
         if isinstance(sample, GnssFix):
             events += self._gnss(sample)
@@ -188,11 +203,18 @@ class Monitor:
         if self.gnss_lost:
             self.gnss_lost = False
             events.append(Notice(fix.t_us, "info", "GNSS fix back" if self.ekf else "GNSS fix: monitoring starts"))
+        if fix.t_us == self._last_fix_t:             # the same message again (a resend): nothing new
+            self.skipped["gnss_resent"] += 1
+            return events
+        self._last_fix_t = fix.t_us
         if self.ekf is None:
             return events + self._initialise(fix)
         self._advance(fix.t_us)
         ekf = self.ekf
-        self._epochs.append((fix.t_us, ekf.x.copy(), ekf.P.copy()))
+        # the state's own time, which a fix stamped before the last IMU sample is not: the rewind
+        # re-runs the IMU fusions after it, and only those
+        self._epochs.append((self.t_us, ekf.x.copy(), ekf.P.copy()))
+        keep_since(self._epochs, self.t_us - REWIND_S * 1e6)
         events += self._freeze(fix)
         delayed = self.cfg.filter.gnss_delay_s > 0
         xd = self._delayed(fix.t_us) if delayed else ekf.x     # the state the fix shows
@@ -238,14 +260,15 @@ class Monitor:
     def _witness_course(self, fix: GnssFix, x: np.ndarray) -> None:
         """The GNSS course against the filter's heading x (ground vehicles, at speed): a witness of the heading."""
         speed = math.hypot(fix.vel_e_mps, fix.vel_n_mps)
-        if not self.ground or speed < 2.0 * self.cfg.freeze_speed_mps:
-            self._course.clear()
+        if not self.ground or speed < max(2.0 * self.cfg.freeze_speed_mps, 0.5):
+            self._course.clear()            # standing still (or nearly): no course to speak of
             return
         course = math.atan2(fix.vel_n_mps, fix.vel_e_mps)
         r0 = math.remainder(course - x[TH], math.tau)          # against the heading alone
         r = math.remainder(r0 - math.atan2(x[VY], x[VX]), math.tau)    # against the filter's track
         self._course.append((r, math.sqrt((self.cfg.filter.gnss_vel_sigma_mps / speed) ** 2 + self.ekf.P[TH, TH]),
                              fix.t_us - int(self.cfg.filter.gnss_delay_s * 1e6), course, speed, r0))
+        keep_since(self._course, self._course[-1][2] - 2 * WITNESS_S * 1e6 + 1, at=2)
 
     def _isolate(self, sensor: str) -> tuple[str, tuple[str, ...], str | None]:
         """Which sensor a heading alarm (magnetometer, GNSS velocity) names, what it cannot rule out,
@@ -275,8 +298,9 @@ class Monitor:
             return "gnss_vel", (), CHANNELS["gnss_vel"][int(np.argmax(np.abs(r) / np.sqrt(np.diagonal(S))))]
         if sensor == "mag":
             return "mag", (), None
-        n = self._course.maxlen // 2
-        r, s, r0 = np.mean([(w[0], w[1], w[5]) for w in list(self._course)[-n:]], axis=0)
+        last = [(w[0], w[1], w[5]) for w in self._course if w[2] > self._course[-1][2] - WITNESS_S * 1e6]
+        n = len(last)
+        r, s, r0 = np.mean(last, axis=0)
         z, z0 = abs(r / s) * math.sqrt(n), abs(r0 / s) * math.sqrt(n)
         if z >= TURN_Z[0] and z0 < TURN_Z[1]:
             return "accel", (), "y"
@@ -287,8 +311,9 @@ class Monitor:
         slope of their differences: (gyro - magnetometer, gyro - course, magnetometer - course), the
         last two None without the course; None without the magnetometer. The gyro's heading is its
         yaw rate, less the filter's bias, integrated."""
-        if len(self._mag) < self._mag.maxlen // 2:
-            return None
+        if not self._mag or self.t_us - self._mag[-1][0] > 1e6 or \
+                self._mag[-1][0] - self._mag[0][0] < 0.97 * WITNESS_S * 1e6:
+            return None                             # no magnetometer, for over a second, or not for long yet
         t, heading, rate = np.array(self._mag)[:, :3].T
         t0, t = t[0], (t - t[0]) / 1e6
         gyro = np.cumsum((rate - self.ekf.x[BW]) * np.diff(t, prepend=0.0))
@@ -299,7 +324,7 @@ class Monitor:
         f = self.cfg.filter
         s_gm, e_gm = slope(t, gyro - np.unwrap(heading), f.heading_sigma_rad)
         course = [c[2:5] for c in self._course if c[2] >= t0]
-        if len(course) < self._course.maxlen // 2:
+        if len(course) < 3 or course[-1][0] - course[0][0] < 0.85 * WITNESS_S * 1e6:
             return s_gm / e_gm, None, None
         tc, course, speed = np.array(course).T
         tc = (tc - t0) / 1e6
@@ -339,6 +364,17 @@ class Monitor:
             self._states.clear()
             self._states.extend(kept + states)
 
+    def _readmit(self, sensor: str, t_us: int) -> list[Event]:
+        del self.excluded[sensor]
+        self._agreed.pop(sensor, None)
+        if sensor == "accel":
+            self._accel_ref = None
+        self.detector.forget(sensor)                # a fresh test: what it summed while excluded is spent
+        if sensor in self._with_receiver:           # it raised no alarm: nothing to clear on a ground station
+            self._with_receiver.discard(sensor)
+            return []
+        return [Cleared(t_us, self.gnss_index, sensor, c) for c in CHANNELS[sensor]]
+
     def _lateral_bias(self) -> float:
         """The lateral accelerometer's offset over the last 2 s: its mean reading less the centripetal
         acceleration of a wheel that does not slide, yaw rate (less the filter's gyro bias) x speed."""
@@ -358,7 +394,12 @@ class Monitor:
         speed = math.hypot(self.ekf.x[VX], self.ekf.x[VY])
         if not repeated or speed < self.cfg.freeze_speed_mps or "gnss_pos" in self.excluded:
             return []
-        self.excluded["gnss_pos"] = self.excluded["gnss_vel"] = fix.t_us
+        if self.cfg.exclude_on_alarm:
+            for out in self._receiver:
+                if out not in self.excluded and out != "gnss_pos":
+                    self._with_receiver.add(out)    # excluded with it, no alarm of its own to clear
+                self.excluded[out] = fix.t_us
+                self._agreed.pop(out, None)
         return [Alarm(fix.t_us, self.gnss_index, "gnss_pos", "frozen", speed, self.cfg.freeze_speed_mps, 0.0,
                       "freeze")]
 
@@ -417,6 +458,7 @@ class Monitor:
         r, S, PHT = self.ekf.innovation(z, H @ self.ekf.x, H, R, angle_rows=(0,) if heading is not None else ())
         if heading is not None:
             self._mag.append((s.t_us, heading, rate, ay, self.ekf.x[VX]))
+            keep_since(self._mag, s.t_us - 2 * WITNESS_S * 1e6 + 1)
         # one stacked update, tested sensor by sensor
         events: list[Event] = []
         keep: list[int] = []
@@ -435,6 +477,8 @@ class Monitor:
             ix = np.ix_(keep, keep)
             self.ekf.fuse(r[keep], S[ix], H[keep], R[ix], PHT[:, keep])
             self._imu_log.append((s.t_us, z[keep], H[keep], R[ix], angle if keep[0] == 0 else ()))
+        # a rewind re-runs the fusions after its epoch: those before the oldest one kept are not needed
+        keep_since(self._imu_log, self._epochs[0][0] if self._epochs else math.inf)
         if self.cfg.filter.gnss_delay_s > 0:
             self._states.append((s.t_us, self.ekf.x.copy()))
         return events
@@ -480,6 +524,7 @@ class Monitor:
         stat, thr, hits = self.detector.test(sensor, t_us, r, S)
         if sensor == "gnss_vel":
             self._last_vel = (r, S)                 # the axis to name if a magnetometer alarm turns out to be it
+            self._vel_t = t_us
         names = CHANNELS[sensor]
         events: list[Event] = []
         if sensor not in self.excluded:
@@ -497,10 +542,11 @@ class Monitor:
                 if self.cfg.exclude_on_alarm:
                     # one receiver gives GNSS position and velocity, and a spoofer controls both: both
                     # go; the one that still agrees is re-admitted after readmit_s
-                    for out in RECEIVER if named in RECEIVER else (named,):
+                    for out in self._receiver if named in RECEIVER else (named,):
                         if out not in self.excluded and out != named:
                             self._with_receiver.add(out)
                         self.excluded[out] = t_us
+                        self._agreed.pop(out, None)
                     self._with_receiver.discard(named)
                     if named in RECEIVER:
                         # back to before the CUSUM's run began, its estimate of the onset; a velocity's
@@ -516,6 +562,7 @@ class Monitor:
             fused = sensor not in self.excluded
         else:
             fused = False
+            agreed = self._agreed.pop(sensor, 0)    # samples in a row that agreed; any branch but the last resets it
             z = np.abs(r) / np.sqrt(np.diagonal(S))
             if hits or np.any(z > self.cfg.readmit_sigma):
                 self.excluded[sensor] = t_us        # still inconsistent
@@ -525,19 +572,16 @@ class Monitor:
                     t_us - self._mag[-1][0] < 1e6 and \
                     abs(self._lateral_bias() - self._accel_ref) >= self.cfg.filter.accel_sigma_mps2:
                 self.excluded[sensor] = t_us        # it still reads sideways what the wheels do not do
-            elif sensor == "gnss_pos" and "gnss_vel" in self.excluded:
+            elif sensor == "gnss_pos" and "gnss_vel" in self.excluded and t_us - self._vel_t < 1e6:
                 # a receiver whose velocity is still judged attacked: its position waits. (The filter's own
                 # uncertainty grows while both are out, which would let a spoofed position "agree".)
                 self.excluded[sensor] = t_us
-            elif t_us - self.excluded[sensor] >= self.cfg.readmit_s * 1e6:
-                del self.excluded[sensor]
-                if sensor == "accel":
-                    self._accel_ref = None
-                self.detector.forget(sensor)        # a fresh test: what it summed while excluded is spent
-                if sensor in self._with_receiver:   # it raised no alarm: nothing to clear on a ground station
-                    self._with_receiver.discard(sensor)
-                else:
-                    events += [Cleared(t_us, self.gnss_index, sensor, c) for c in names]
+            elif t_us - self.excluded[sensor] < self.cfg.readmit_s * 1e6 or agreed + 1 < READMIT_SAMPLES:
+                self._agreed[sensor] = agreed + 1
+            else:
+                events += self._readmit(sensor, t_us)
+                if sensor == "gnss_pos" and "gnss_vel" in self.excluded:
+                    events += self._readmit("gnss_vel", t_us)   # fixes without a velocity: back with its receiver
                 fused = True
         if self.record_tests:
             events.insert(0, Tested(Innovation(t_us, sensor, names, r, S, fused), self.gnss_index, stat, thr))

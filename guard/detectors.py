@@ -118,6 +118,7 @@ class PageCusum:
             chans = self.state[sensor] = [_Page(nk) for _ in range(len(r))]
         hs = self._h(sensor, t_us)
         stat, thr, alarms = [], [], []
+        onset = 0                                       # the longest run of this sample's alarms
         for i, (ri, si) in enumerate(zip(r.tolist(), S.diagonal().tolist())):
             c = chans[i]
             z = ri / math.sqrt(si)
@@ -148,7 +149,7 @@ class PageCusum:
                 up = c.gp[j] >= c.gn[j]
                 n = c.cnt_p[j] if up else c.cnt_n[j]
                 alarms.append((i, (c.sum_p[j] if up else c.sum_n[j]) / n))
-                self.run_length[sensor] = n
+                onset = self.run_length[sensor] = max(onset, n)
                 chans[i] = _Page(nk)      # the test restarts after an alarm
         return tuple(stat), tuple(thr), alarms
 
