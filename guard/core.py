@@ -153,13 +153,7 @@ class Monitor:
             return []
         if isinstance(sample, VehicleType):
             return self._vehicle(sample)
-        events: list[Event] = []
-        if self._rewind_epochs:
-            self._rewind(self._rewind_epochs)
-            self._rewind_epochs = 0
-        if self._estimate_owed:                     # the alarm's epoch, as the rewind left it
-            events.append(self._estimate(*self._estimate_owed))
-            self._estimate_owed = None
+        events = self.finish()                      # an alarm's rewind, then its epoch's Estimate, if owed
         if isinstance(sample, GnssFix):
             self.gnss_index += 1
         timed = not (isinstance(sample, GnssFix) and not sample.fix_ok)    # a no-fix message's time means nothing
@@ -175,6 +169,18 @@ class Monitor:
             events += self._gnss(sample)
         elif isinstance(sample, ImuSample):
             events += self._imu(sample)
+        return events
+
+    def finish(self) -> list[Event]:
+        """At the end of a stream: what the last step still owed (an alarm's rewind and its epoch's
+        Estimate, which wait for the next sample)."""
+        events: list[Event] = []
+        if self._rewind_epochs:
+            self._rewind(self._rewind_epochs)
+            self._rewind_epochs = 0
+        if self._estimate_owed:
+            events.append(self._estimate(*self._estimate_owed))
+            self._estimate_owed = None
         return events
 
     def _vehicle(self, v: VehicleType) -> list[Event]:

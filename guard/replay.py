@@ -86,6 +86,9 @@ def replay(path: str, cfg: Config | None = None, *, listeners=(), progress: bool
                     notices.append({"time_usec": e.t_us, "level": e.level, "text": e.text})
             if i % 2048 == 0:
                 bar.update(reader.position)
+        owed = monitor.finish()                 # what the last sample still owed (an alarm's Estimate)
+        for sink in listeners:
+            sink.on_events(owed)
         bar.update(reader.size, force=True)
     finally:
         reader.close()

@@ -557,3 +557,17 @@ def test_page_onset_is_the_longest_run_of_a_sample():
     out = feed(det, "s", rows, S)
     assert out[-1][2] and len(out[-1][2]) == 2
     assert det.run_length["s"] == 7
+
+
+def test_core_an_alarm_on_the_last_fix_still_gets_its_estimate():
+    """The alarm epoch's Estimate waits for the rewind at the next sample; a stream that ends there
+    gets it from finish()."""
+    samples = drive(40.0, seed=2, gnss_offset=lambda t: (0.0, 10.0) if t >= 40.0 else (0.0, 0.0))
+    last = max(i for i, s in enumerate(samples) if isinstance(s, GnssFix))
+    mon, events = run(samples[:last + 1])
+    assert of(events, Alarm)[-1].t_us == samples[last].t_us
+    assert of(events, Estimate)[-1].t_us < samples[last].t_us
+    owed, = mon.finish()
+    assert isinstance(owed, Estimate) and owed.t_us == samples[last].t_us
+    assert owed.north_m == pytest.approx(0.0, abs=0.7)      # after the rewind: the attack shed
+    assert mon.finish() == []

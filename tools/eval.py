@@ -169,6 +169,7 @@ def one(job) -> list[dict]:
         reader = TlogReader(str(tlog))
         for sample in tlog_samples(reader):
             col.take(monitor.step(sample))
+        col.take(monitor.finish())
         reader.close()
         frame = LocalFrame(*col.origin)
         true_en = np.array([frame.to_en(a, b) for a, b in zip(traj["lat_deg"], traj["lon_deg"])])
