@@ -31,6 +31,7 @@ v_y = 0 fused with every IMU update.
 
 from __future__ import annotations
 
+import datetime
 import math
 from collections import Counter, deque
 from dataclasses import dataclass, field
@@ -87,11 +88,15 @@ class Monitor:
 
     `record_tests`: emit a Tested event (innovation, statistic, threshold) for every fusion. Sinks
     that log or plot them need it; a bare replay does not, and skips the cost.
+    `date`: when the data was recorded, for the magnetic declination (None: today, as live); a
+    replay passes its log's, so that a log replays alike whatever the day.
     """
 
-    def __init__(self, cfg: MonitorConfig | None = None, record_tests: bool = True):
+    def __init__(self, cfg: MonitorConfig | None = None, record_tests: bool = True,
+                 date: datetime.date | None = None):
         self.cfg = cfg or MonitorConfig()
         self.record_tests = record_tests
+        self.date = date
         n_channels = sum(len(c) for s, c in CHANNELS.items() if s != "gnss_vel" or self.cfg.filter.use_gnss_velocity)
         self.detector = make_detector(self.cfg.detector, n_channels)
         f = self.cfg.filter
@@ -412,7 +417,8 @@ class Monitor:
     def _initialise(self, fix: GnssFix) -> list[Event]:
         self.frame = LocalFrame(fix.lat_deg, fix.lon_deg, fix.alt_m)
         dec = self.cfg.declination_deg
-        self.declination = declination_rad(fix.lat_deg, fix.lon_deg, fix.alt_m) if dec is None else math.radians(dec)
+        self.declination = (declination_rad(fix.lat_deg, fix.lon_deg, fix.alt_m, self.date) if dec is None
+                            else math.radians(dec))
         x0 = np.zeros(N_STATES)
         ve, vn = fix.vel_e_mps or 0.0, fix.vel_n_mps or 0.0
         if self._last_mag is not None:

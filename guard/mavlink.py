@@ -12,6 +12,7 @@ skipped rather than fatal, and it decodes (with pymavlink) only the messages gua
 
 from __future__ import annotations
 
+import datetime
 import math
 import mmap
 import os
@@ -83,6 +84,10 @@ class TlogReader:
             raise SourceError(f"{path}: cannot open: {e.strerror}") from None
         self.size = os.fstat(self._file.fileno()).st_size
         self.position = 0
+        first = int.from_bytes(self._file.read(8), "big") if self.size >= 8 else 0
+        # the day it was recorded, from the first frame's time prefix (None if the log starts with garbage)
+        self.date = (datetime.datetime.fromtimestamp(first / 1e6, datetime.timezone.utc).date()
+                     if T_MIN_US <= first <= T_MAX_US else None)
         self.first_time_us: int | None = None
         self.last_time_us: int | None = None
 

@@ -64,8 +64,8 @@ def replay(path: str, cfg: Config | None = None, *, listeners=(), progress: bool
     `listeners` get on_sample(sample) and on_events(events) for every sample (a Trace, an McapLog).
     """
     cfg = cfg or Config()
-    monitor = Monitor(cfg.monitor, record_tests=bool(listeners))
     reader = TlogReader(path, cfg.link.system_id if cfg.link.system_id else 0)
+    monitor = Monitor(cfg.monitor, record_tests=bool(listeners), date=reader.date)
     bar = Progress(reader.size, progress)
     alarms, cleared, notices = [], [], []
     try:

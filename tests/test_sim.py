@@ -14,6 +14,7 @@ import json
 import struct
 import types
 
+import guard.geo
 import guard.mavlink  # noqa: F401  (MAVLINK20=1 before pymavlink is imported)
 import numpy as np
 import pymap3d
@@ -21,6 +22,7 @@ import pytest
 from pymavlink import mavutil
 
 import sim.sensors
+from guard.replay import Trace, replay
 from sim import scenario as scn
 from sim.mavout import TLOG_EPOCH_US
 from sim.run import Simulation, run
@@ -178,6 +180,29 @@ def test_same_seed_same_bytes_on_another_day(tmp_path, monkeypatch):
     monkeypatch.setattr(sim.sensors, "datetime", types.SimpleNamespace(date=Later), raising=False)
     run(sc, 1, tlog=str(tmp_path / "later.tlog"))
     assert (tmp_path / "later.tlog").read_bytes() == (tmp_path / "today.tlog").read_bytes()
+
+
+def test_a_replay_is_the_same_on_another_day(tmp_path, monkeypatch):
+    """The replay takes the magnetic declination on the day the log was recorded, not today."""
+    tlog = tmp_path / "clean.tlog"
+    run(dataclasses.replace(scn.load("clean"), duration_s=30.0), 1, tlog=str(tlog))
+    assert guard.mavlink.TlogReader(str(tlog)).date == datetime.date(2026, 1, 1)     # TLOG_EPOCH_US
+
+    def estimates() -> list:
+        trace = Trace()
+        replay(str(tlog), listeners=[trace])
+        return trace.estimate
+
+    class Later(datetime.date):
+        @classmethod
+        def today(cls):
+            return datetime.date.today() + datetime.timedelta(days=20 * 365)
+
+    now = estimates()
+    monkeypatch.setattr(guard.geo, "datetime", types.SimpleNamespace(date=Later), raising=False)
+    assert estimates() == now
+    assert guard.geo.declination_rad(40.0, -87.0, 0.0) != guard.geo.declination_rad(
+        40.0, -87.0, 0.0, datetime.date.today())     # the patch moves today: the test can fail
 
 
 # -- attacks ----------------------------------------------------------------------------------------

@@ -165,8 +165,8 @@ def one(job) -> list[dict]:
     rows = []
     for det in detectors:
         cfg = detector_config(det, settings)
-        monitor, col = Monitor(cfg.monitor), Collector()
-        reader = TlogReader(str(tlog))
+        reader, col = TlogReader(str(tlog)), Collector()
+        monitor = Monitor(cfg.monitor, date=reader.date)
         for sample in tlog_samples(reader):
             col.take(monitor.step(sample))
         col.take(monitor.finish())
