@@ -288,10 +288,12 @@ class Monitor:
         Three sources see the heading turn: the gyro, the magnetometer and, on a ground vehicle at
         speed, the GNSS course. When the magnetometer and the course turned alike over the last
         2 WITNESS_S and the gyro turned differently from both, the gyro is named. A GNSS velocity
-        whose course agrees with the filter's heading but not with its track (heading plus its own
-        sideways velocity) has been pushed sideways by the filter, not by the receiver: a wheel does
-        not slide, so the lateral accelerometer is named. Otherwise the alarmed sensor is named; a
-        GNSS velocity alone when its course disagrees with the filter's track. Without the course (in
+        whose course is off the filter's track (heading plus its own sideways velocity) by TURN_Z[0]
+        or more and nearer than that to its heading has been pushed sideways by the filter, not by
+        the receiver: a wheel does not slide, so the lateral accelerometer is named (one boundary for
+        both: "alike" within TURN_Z[1] missed 2 of the harness's 40 seeds of a sideways bias, on the
+        course's noise alone, while its spoofs' courses lay 4.8 or more from the heading at their
+        alarms). Otherwise the alarmed sensor is named; a GNSS velocity alone when its course disagrees with the filter's track. Without the course (in
         the air, standing still) a magnetometer alarm cannot be told from a gyro bias, and an
         along-track GNSS velocity alarm never can be told from an accelerometer bias (a coordinated
         spoof looks the same): the alarm names both.
@@ -313,7 +315,7 @@ class Monitor:
         n = len(last)
         r, s, r0 = np.mean(last, axis=0)
         z, z0 = abs(r / s) * math.sqrt(n), abs(r0 / s) * math.sqrt(n)
-        if z >= TURN_Z[0] and z0 < TURN_Z[1]:
+        if z >= TURN_Z[0] > z0:
             return "accel", (), "y"
         return sensor, (() if z >= WITNESS_Z else AMBIGUOUS.get(sensor, ())), None
 
