@@ -293,10 +293,11 @@ class Monitor:
         the receiver: a wheel does not slide, so the lateral accelerometer is named (one boundary for
         both: "alike" within TURN_Z[1] missed 2 of the harness's 40 seeds of a sideways bias, on the
         course's noise alone, while its spoofs' courses lay 4.8 or more from the heading at their
-        alarms). Otherwise the alarmed sensor is named; a GNSS velocity alone when its course disagrees with the filter's track. Without the course (in
-        the air, standing still) a magnetometer alarm cannot be told from a gyro bias, and an
-        along-track GNSS velocity alarm never can be told from an accelerometer bias (a coordinated
-        spoof looks the same): the alarm names both.
+        alarms). Otherwise the alarmed sensor is named; a GNSS velocity alone when its course
+        disagrees with the filter's track. Without the course (in the air, standing still) a
+        magnetometer alarm cannot be told from a gyro bias, and an along-track GNSS velocity alarm
+        never can be told from an accelerometer bias (a coordinated spoof looks the same): the alarm
+        names both.
         """
         turns = self._turns()
         if turns is None or turns[1] is None:
