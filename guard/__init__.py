@@ -1,7 +1,7 @@
 """guard: detects attacks on a vehicle's navigation sensors while it moves.
 
 An extended Kalman filter fuses IMU and GNSS (the paper's model); its innovations are tested with CUSUM
-detectors. See README.md for the data flow and the figures, and `guard.core` for the one pure step
+detectors. See README.md for the data flow and the figures, and `guard.core.monitor` for the one pure step
 that live, replay and CAN input all share.
 """
 

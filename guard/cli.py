@@ -10,15 +10,16 @@ import argparse
 import logging
 import sys
 
-from . import __version__
-from .errors import ConfigError, GuardError
+from guard import __version__
+from guard.errors import ConfigError, GuardError
 
 EX_CONFIG = 78     # sysexits' configuration error: the systemd unit does not restart on it (it would not mend)
 
 
 def _replay(args) -> int:
-    from .config import load
-    from .replay import Trace, replay, truth_beside, write_report
+    from guard.config import load
+    from guard.runtime.replay import replay, truth_beside, write_report
+    from guard.sinks.plot import Trace
     cfg = load(args.config)
     from dataclasses import replace
     if args.detector:
@@ -31,7 +32,7 @@ def _replay(args) -> int:
         listeners.append(trace)
     log = None
     if args.mcap:
-        from .mcaplog import McapLog
+        from guard.sinks.mcap import McapLog
         log = McapLog(args.mcap, metadata={"config": cfg.source_text, "source": args.file})
         listeners.append(log)
     try:
@@ -42,7 +43,7 @@ def _replay(args) -> int:
     if args.report:
         write_report(report, args.report)
     if args.plot:
-        from .plot import plot
+        from guard.sinks.plot import plot
         plot(trace, report, args.plot, truth_beside(args.file))
     if args.report != "-":
         alarms = report["alarms"]
@@ -58,8 +59,8 @@ def _replay(args) -> int:
 
 
 def _run(args) -> int:
-    from .config import load
-    from .daemon import Daemon
+    from guard.config import load
+    from guard.runtime.daemon import Daemon
     return Daemon(load(args.config), connect=args.connect, mcap=args.mcap).run()
 
 
@@ -97,12 +98,12 @@ def _sim(args) -> int:
 
 
 def _demo(args) -> int:
-    from .demo import demo
+    from guard.runtime.demo import demo
     return demo(args.scenario, args.seed, args.speedup)
 
 
 def _recover(args) -> int:
-    from .mcaplog import recover
+    from guard.sinks.mcap import recover
     messages, channels = recover(args.src, args.dst)
     print(f"{args.dst}: recovered {messages} messages on {channels} channels")
     return 0

@@ -10,10 +10,10 @@ import math
 import tomllib
 from dataclasses import dataclass, field, fields, replace
 
-from .core import MonitorConfig
-from .detectors import DETECTORS, DetectorConfig
-from .ekf import FilterConfig
-from .errors import ConfigError
+from guard.core.monitor import MonitorConfig
+from guard.core.detectors import DETECTORS, DetectorConfig
+from guard.core.ekf import FilterConfig
+from guard.errors import ConfigError
 
 
 @dataclass(frozen=True)

@@ -8,9 +8,11 @@ IMU sample is sent before the GNSS sample.
 from __future__ import annotations
 
 import copy
+import importlib
 import json
 import logging
 import math
+import os
 import time
 from collections import deque
 from dataclasses import asdict
@@ -139,16 +141,31 @@ class Simulation:
         return truth_record(self.scenario, self.seed, self.sensors, self.trajectory)
 
 
-def run(scenario: Scenario, seed: int, *, tlog: str | None = None, out: str | None = None,
-        speedup: float = 1.0, fast: bool = False, on_statustext=None, can=None) -> dict:
-    """Run a scenario to the end; returns the truth record (and writes NAME.truth.json beside a tlog).
+# log formats the simulator writes besides tlog: keyword -> (module, writer class); each writer takes
+# the simulator's MAVLink messages, send(t_us, msg), and writes them in its own format, then close()
+LOG_WRITERS = {"bin": ("sim.dataflash", "DataFlashWriter"), "ulg": ("sim.ulog", "UlogWriter")}
 
-    `tlog` writes a file, `out` sends live MAVLink, `can` publishes DroneCAN; live output (MAVLink or
+
+def _log_writer(kind: str, path: str):
+    module, cls = LOG_WRITERS[kind]
+    return getattr(importlib.import_module(module), cls)(path)
+
+
+def run(scenario: Scenario, seed: int, *, tlog: str | None = None, out: str | None = None,
+        speedup: float = 1.0, fast: bool = False, on_statustext=None, can=None,
+        bin: str | None = None, ulg: str | None = None) -> dict:
+    """Run a scenario to the end; returns the truth record (and writes NAME.truth.json beside each
+    log file).
+
+    `tlog` writes a tlog, `bin` an ArduPilot DataFlash log, `ulg` a PX4 ULog (any of them, the same
+    run), `out` sends live MAVLink, `can` publishes DroneCAN; live output (MAVLink or
     CAN) is paced at `speedup` times real time unless `fast`; a tlog alone is written at once. `on_statustext(msg)` is called for every STATUSTEXT received on `out`.
     `can` is an object with send_gnss/send_imu/send_mag (sim.canbus.CanPublisher) or None.
     """
     sim = Simulation(scenario, seed)
-    writer = TlogWriter(tlog, sim.encoder) if tlog else None
+    writers = [TlogWriter(tlog, sim.encoder)] if tlog else []
+    files = {k: p for k, p in (("bin", bin), ("ulg", ulg)) if p}
+    writers += [_log_writer(k, p) for k, p in files.items()]
     link = LiveLink(out, sim.encoder) if out else None
     paced = (link is not None or can is not None) and not fast
     wall0 = time.monotonic()
@@ -164,7 +181,7 @@ def run(scenario: Scenario, seed: int, *, tlog: str | None = None, out: str | No
                     if msg is not None and on_statustext:
                         on_statustext(msg)
             for msg in messages:
-                if writer:
+                for writer in writers:
                     writer.send(t_us, msg)
                 if link:
                     link.send(t_us, msg)
@@ -177,13 +194,13 @@ def run(scenario: Scenario, seed: int, *, tlog: str | None = None, out: str | No
                 if msg is not None and on_statustext:
                     on_statustext(msg)
     finally:
-        if writer:
+        for writer in writers:
             writer.close()
         if link:
             link.close()
     truth = sim.truth()
-    if tlog:
-        stem = tlog[:-5] if tlog.endswith(".tlog") else tlog
+    for path in (p for p in (tlog, bin, ulg) if p):
+        stem = os.path.splitext(path)[0]
         with open(stem + ".truth.json", "w") as f:
             json.dump(truth, f, indent=1)
     return truth

@@ -27,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import can                                       # noqa: E402
 
-from guard.can import CanSource                  # noqa: E402
+from guard.sources.can import CanSource                  # noqa: E402
 from sim import scenario                         # noqa: E402
 from sim.canbus import CanPublisher              # noqa: E402
 from sim.run import run                          # noqa: E402

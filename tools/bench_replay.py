@@ -24,9 +24,9 @@ os.environ.setdefault("MAVLINK20", "1")
 
 from pymavlink import mavutil                    # noqa: E402
 
-from guard import core, ekf                      # noqa: E402
-from guard.mavlink import TlogReader, tlog_samples   # noqa: E402
-from guard.replay import replay                  # noqa: E402
+from guard.core import monitor as core, ekf                      # noqa: E402
+from guard.sources.tlog import TlogReader, tlog_samples   # noqa: E402
+from guard.runtime.replay import replay                  # noqa: E402
 from sim import scenario                         # noqa: E402
 from sim.run import run                          # noqa: E402
 

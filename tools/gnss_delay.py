@@ -21,7 +21,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from guard.config import load                    # noqa: E402
 from guard.errors import GuardError              # noqa: E402
-from guard.replay import replay                  # noqa: E402
+from guard.runtime.replay import replay                  # noqa: E402
 
 
 def main(argv=None) -> int:

@@ -1,0 +1,22 @@
+"""Aiding sources: one file per sensor group, as PX4's EKF2 keeps one file per aid source.
+
+Each builds its measurement for the filter: z, h(x), H and R, in one `Aid` record; the monitor forms
+the innovation r = z - h(x) and S = H P Hᵀ + R from it, tests r against S, and fuses it or not.
+Deciding *whether* to fuse is the monitor's and `guard.core.health`'s; the math is here and in
+`guard.core.ekf`.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+
+class Aid(NamedTuple):
+    """One measurement for the filter: z (m,), h(x) (m,), H (m, n), R (m, m)."""
+
+    z: np.ndarray
+    hx: np.ndarray
+    H: np.ndarray
+    R: np.ndarray

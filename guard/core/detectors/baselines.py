@@ -1,0 +1,96 @@
+"""The baselines a detector must beat: the autopilots' innovation gate and a chi-square test."""
+
+from __future__ import annotations
+
+import math
+from statistics import NormalDist
+
+import numpy as np
+
+from guard.core.detectors.base import DetectorConfig, _Peaks
+
+
+class Gate(_Peaks):
+    """The autopilots' rule: reject an innovation beyond `gate_sigma`; alarm when a channel has been
+    rejected on every sample for `gate_persist_s` (ArduPilot and PX4 then reset onto the GNSS)."""
+
+    name = "gate"
+
+    def __init__(self, cfg: DetectorConfig, n_channels: int):
+        self.cfg = cfg
+        self.since: dict[tuple[str, int], int] = {}     # (sensor, channel) -> first rejected sample time
+
+    def test(self, sensor: str, t_us: int, r: np.ndarray, S: np.ndarray):
+        g, stat, alarms = self.cfg.gate_sigma, [], []
+        persist = self.cfg.gate_persist_s * 1e6
+        for i, (ri, si) in enumerate(zip(r.tolist(), S.diagonal().tolist())):
+            z = abs(ri) / math.sqrt(si)
+            key = (sensor, i)
+            if z <= g:
+                self.since.pop(key, None)
+                stat.append(0.0)
+                continue
+            t0 = self.since.setdefault(key, t_us)
+            stat.append((t_us - t0) / 1e6)
+            if t_us - t0 >= persist:
+                alarms.append((i, ri))
+                del self.since[key]
+        return *self._seen(stat, (self.cfg.gate_persist_s,) * len(stat)), alarms
+
+    def forget(self, sensor: str) -> None:
+        for key in [k for k in self.since if k[0] == sensor]:
+            del self.since[key]
+
+    def reset(self) -> None:
+        self.since.clear()
+
+
+class ChiSquare(_Peaks):
+    """A memoryless test per sensor: NIS = rᵀ S⁻¹ r against the chi-square quantile whose tail
+    probability gives the target mean time between false alarms. The alarm names the channel with
+    the largest normalised innovation."""
+
+    name = "chi2"
+
+    def __init__(self, cfg: DetectorConfig, n_channels: int):
+        self.cfg = cfg
+        self.n_tests = n_channels
+        self.h: dict[str, float] = {}
+        self._first_t: dict[str, int] = {}
+
+    def _h(self, sensor: str, t_us: int, m: int) -> float:
+        h = self.h.get(sensor)
+        if h is None:
+            t0 = self._first_t.setdefault(sensor, t_us)
+            rate = 50.0 if t_us <= t0 else min(1000.0, 1e6 / (t_us - t0))
+            p = 1.0 / (self.cfg.false_alarm_interval_h * 3600.0 * rate * self.n_tests)
+            h = chi2_quantile(p, m)
+            if t_us > t0:
+                self.h[sensor] = h
+        return h
+
+    def test(self, sensor: str, t_us: int, r: np.ndarray, S: np.ndarray):
+        h = self._h(sensor, t_us, len(r))
+        nis = float(r @ np.linalg.solve(S, r))
+        alarms = []
+        if nis > h:
+            z = np.abs(r) / np.sqrt(np.diagonal(S))
+            i = int(np.argmax(z))
+            alarms.append((i, float(r[i])))
+        return *self._seen((nis,) * len(r), (h,) * len(r)), alarms
+
+    def forget(self, sensor: str) -> None:
+        pass            # memoryless
+
+    def reset(self) -> None:
+        self.h.clear()
+        self._first_t.clear()
+
+
+def chi2_quantile(p: float, dof: int) -> float:
+    """x with P(chi2_dof > x) = p, for dof 1 (from the normal quantile) and 2 (closed form)."""
+    if dof == 1:
+        return NormalDist().inv_cdf(1.0 - p / 2.0) ** 2
+    if dof == 2:
+        return -2.0 * math.log(p)
+    raise ValueError("chi2_quantile: dof must be 1 or 2")

@@ -1,0 +1,143 @@
+"""The paper's extended Kalman filter: 11 states, INS/GNSS loosely coupled, multi-rate.
+
+State (paper, Sec. III-B), indices in brackets:
+    x[0] x, x[1] y      position east, north (m, local tangent plane)
+    x[2] theta          yaw, ENU: 0 = east, counter-clockwise positive (rad)
+    x[3] v_x, x[4] v_y  body velocity, forward and left (m/s)
+    x[5] theta_dot      yaw rate (rad/s)
+    x[6] a_x, x[7] a_y  body acceleration (specific force), forward and left (m/s^2)
+    x[8] b_theta_dot, x[9] b_ax, x[10] b_ay   gyro and accelerometer biases
+
+Transition with sampling time T (the paper's discrete model):
+    x(k+1)  = x + T (v_x cos theta - v_y sin theta)
+    y(k+1)  = y + T (v_x sin theta + v_y cos theta)
+    theta(k+1) = theta + T theta_dot
+    v_x(k+1) = v_x + T (a_x + c theta_dot v_y)
+    v_y(k+1) = v_y + T (a_y - c theta_dot v_x)
+    the rest constant, plus process noise nu(k) ~ N(0, Q).
+c = 1 adds the transport term of a rotating body frame, which the paper leaves out (c = 0): an
+accelerometer reads the centripetal acceleration theta_dot * v_x in a turn, and without the term
+that reading would be integrated into a sideways velocity. On a straight line both agree.
+
+Measurements (linear in the state but for GNSS velocity), each in its own file of `guard.core.aiding`:
+    GNSS position  (x, y);  GNSS velocity (v_e, v_n) = R(theta) (v_x, v_y)   [beyond the paper]
+    heading        theta;  gyro theta_dot + b;  accelerometer (a_x + b_ax, a_y + b_ay)
+    ground vehicles: v_y = 0, a pseudo-measurement (a wheel does not slide sideways) [beyond the paper]
+
+The sideways constraint (`lateral_sigma_mps`) ties the course over ground to the heading. Without it
+a heading error is hidden by a sideways velocity (a multicopter may fly sideways, so it is off in
+the air), and the GNSS course cannot witness the gyro: a gyro bias and a magnetometer attack then
+look alike. With it, the GNSS course is a third heading witness, the IMU alone keeps the position
+through a GNSS outage (its error grows with the speed error only), and a spoof that moves the GNSS
+track sideways from the heading shows at once.
+
+Why numpy and not filterpy's ExtendedKalmanFilter: filterpy's update() computes the innovation and
+fuses it in one call, and guard must see the innovation r = y - ŷ and S = H P Hᵀ + R *before*
+deciding whether to fuse (a sensor judged attacked is tested but no longer fused). The halves are
+written here with filterpy's symbols (x, P, F, Q, H, R, S, K) and the Joseph form; the tests check
+them against filterpy and against the steady-state gain from the DARE.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+N_STATES = 11
+X, Y, TH, VX, VY, W, AX, AY, BW, BAX, BAY = range(N_STATES)
+
+
+@dataclass(frozen=True)
+class FilterConfig:
+    """Noise model of the filter (1-sigma). Process noise is given per second (random-walk rates)."""
+
+    gnss_pos_sigma_m: float = 0.35
+    gnss_vel_sigma_mps: float = 0.06
+    heading_sigma_rad: float = 0.03
+    heading_lag_s: float = 0.1        # timing uncertainty of the magnetometer: adds (yaw rate * lag)^2 to R
+    gnss_delay_s: float = 0.0         # the receiver's latency: a fix is compared with the state this long before it
+    gyro_sigma_radps: float = 0.01
+    accel_sigma_mps2: float = 0.15
+    lateral_sigma_mps: float = 0.1    # ground vehicles: sideways body velocity (skid), the v_y = 0 pseudo-measurement
+    q_pos_m: float = 0.1              # position random walk, m/sqrt(s): covers correlated GNSS error
+    q_heading_rad: float = 0.005
+    q_vel_mps: float = 0.05
+    q_yaw_rate_radps: float = 0.5     # yaw acceleration
+    q_accel_mps2: float = 2.0         # jerk
+    q_gyro_bias_radps: float = 1e-4
+    q_accel_bias_mps2: float = 1e-3
+    use_gnss_velocity: bool = True
+    centripetal: bool = True          # c in the transition; False is the paper's model as written
+    p0_pos_m: float = 2.0
+    p0_heading_rad: float = 0.3
+    p0_vel_mps: float = 1.0
+    p0_yaw_rate_radps: float = 0.1
+    p0_accel_mps2: float = 1.0
+    p0_gyro_bias_radps: float = 0.01
+    p0_accel_bias_mps2: float = 0.2
+
+
+class NavEKF:
+    """x: state (11,), P: covariance (11, 11). predict() then innovation() then fuse()."""
+
+    def __init__(self, cfg: FilterConfig, x0: np.ndarray):
+        self.cfg = cfg
+        self.x = np.asarray(x0, dtype=float).copy()
+        self.P = np.diag(np.square([cfg.p0_pos_m, cfg.p0_pos_m, cfg.p0_heading_rad, cfg.p0_vel_mps, cfg.p0_vel_mps,
+                                    cfg.p0_yaw_rate_radps, cfg.p0_accel_mps2, cfg.p0_accel_mps2,
+                                    cfg.p0_gyro_bias_radps, cfg.p0_accel_bias_mps2, cfg.p0_accel_bias_mps2]))
+        self.q = np.square([cfg.q_pos_m, cfg.q_pos_m, cfg.q_heading_rad, cfg.q_vel_mps, cfg.q_vel_mps,
+                            cfg.q_yaw_rate_radps, cfg.q_accel_mps2, cfg.q_accel_mps2, cfg.q_gyro_bias_radps,
+                            cfg.q_accel_bias_mps2, cfg.q_accel_bias_mps2])
+        self.c = 1.0 if cfg.centripetal else 0.0
+        self._F = np.eye(N_STATES)
+        self._I = np.eye(N_STATES)
+        self._diag = np.diag_indices(N_STATES)
+
+    def predict(self, T: float) -> None:
+        """Propagate by T seconds: x = f(x), P = F P Fᵀ + Q."""
+        if T <= 0.0:
+            return
+        x, c, F = self.x, self.c, self._F
+        th, vx, vy, w, ax, ay = x[TH:BW].tolist()
+        cs, sn = math.cos(th), math.sin(th)
+        # F = df/dx, evaluated at the prior state
+        F[X, TH], F[X, VX], F[X, VY] = T * (-vx * sn - vy * cs), T * cs, -T * sn
+        F[Y, TH], F[Y, VX], F[Y, VY] = T * (vx * cs - vy * sn), T * sn, T * cs
+        F[TH, W] = T
+        F[VX, VY], F[VX, W], F[VX, AX] = T * c * w, T * c * vy, T
+        F[VY, VX], F[VY, W], F[VY, AY] = -T * c * w, -T * c * vx, T
+        # x = f(x)
+        x[X] += T * (vx * cs - vy * sn)
+        x[Y] += T * (vx * sn + vy * cs)
+        x[TH] = math.remainder(th + T * w, math.tau)
+        x[VX] += T * (ax + c * w * vy)
+        x[VY] += T * (ay - c * w * vx)
+        # P = F P Fᵀ + Q,  Q = q T
+        self.P = F @ self.P @ F.T
+        self.P[self._diag] += self.q * T
+
+    def innovation(self, z: np.ndarray, hx: np.ndarray, H: np.ndarray, R: np.ndarray,
+                   angle_rows: tuple[int, ...] = ()) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """r = z - h(x) (angles wrapped), S = H P Hᵀ + R, and P Hᵀ for fuse()."""
+        r = z - hx
+        for i in angle_rows:
+            r[i] = math.remainder(r[i], math.tau)
+        PHT = self.P @ H.T
+        # S = H P H' + R
+        S = H @ PHT + R
+        return r, S, PHT
+
+    def fuse(self, r: np.ndarray, S: np.ndarray, H: np.ndarray, R: np.ndarray, PHT: np.ndarray) -> None:
+        """x = x + K r, P = (I - K H) P (I - K H)ᵀ + K R Kᵀ (Joseph form). PHT = P Hᵀ.
+
+        R must be diagonal (every sensor's noise is modelled so): K R Kᵀ is computed as (K diag(R)) Kᵀ.
+        """
+        # K = P H' S^-1
+        K = PHT @ np.linalg.inv(S)
+        self.x += K @ r
+        self.x[TH] = math.remainder(self.x[TH], math.tau)
+        I_KH = self._I - K @ H
+        self.P = I_KH @ self.P @ I_KH.T + (K * R.diagonal()) @ K.T     # R is diagonal

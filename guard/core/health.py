@@ -1,0 +1,65 @@
+"""Which sensors are excluded, since when, and how they come back.
+
+A sensor whose test rejects H0 raises an Alarm and is then excluded: its innovations are still
+formed and tested, but no longer fused, so the estimate rides on the other sensors instead of
+following the attack. It is re-admitted (Cleared) when its normalised innovations have stayed
+within `readmit_sigma` for `readmit_s` seconds and READMIT_SAMPLES samples, and its witnesses no
+longer hold it (the monitor says so: `settle(..., bad=...)`). GNSS position and velocity come from
+one receiver and go together; a sensor excluded with the receiver, not by an alarm of its own,
+comes back without a Cleared (a ground station has nothing to clear).
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+
+from guard.model.events import Cleared, Event
+from guard.model.sensors import CHANNELS, RECEIVER, Sensor
+
+READMIT_SAMPLES = 10   # and at least this many samples in a row (a 1 Hz receiver: 10 s, not 3 samples)
+
+
+class Health:
+    def __init__(self, receiver: tuple[Sensor, ...], readmit_s: float):
+        self.receiver = receiver                    # what one receiver's alarm excludes
+        self.readmit_s = readmit_s
+        self.excluded: dict[Sensor, int] = {}       # sensor -> time of the last inconsistent innovation
+        self.agreed: Counter[Sensor] = Counter()    # excluded sensor -> consistent samples since then
+        self.with_receiver: set[Sensor] = set()     # excluded with the receiver, not by an alarm of its own
+        self.accel_ref: float | None = None         # a laterally biased accelerometer's bias before the attack
+
+    def exclude(self, named: Sensor, t_us: int) -> None:
+        """An alarm on `named`: it goes, and with a GNSS sensor the rest of its receiver (a spoofer
+        controls both; the one that still agrees is re-admitted after readmit_s)."""
+        for out in self.receiver if named in RECEIVER else (named,):
+            if out not in self.excluded and out != named:
+                self.with_receiver.add(out)
+            self.excluded[out] = t_us
+            self.agreed.pop(out, None)
+        self.with_receiver.discard(named)
+
+    def settle(self, sensor: Sensor, t_us: int, bad: bool) -> bool:
+        """One more test of an excluded sensor; True when it is to be re-admitted now."""
+        agreed = self.agreed.pop(sensor, 0)     # samples in a row that agreed; a bad one resets it
+        if bad:
+            self.excluded[sensor] = t_us        # still inconsistent
+            return False
+        if t_us - self.excluded[sensor] < self.readmit_s * 1e6 or agreed + 1 < READMIT_SAMPLES:
+            self.agreed[sensor] = agreed + 1
+            return False
+        return True
+
+    def readmit(self, sensor: Sensor, t_us: int, gnss_index: int) -> list[Event]:
+        del self.excluded[sensor]
+        self.agreed.pop(sensor, None)
+        if sensor == Sensor.ACCEL:
+            self.accel_ref = None
+        if sensor in self.with_receiver:            # it raised no alarm: nothing to clear on a ground station
+            self.with_receiver.discard(sensor)
+            return []
+        return [Cleared(t_us, gnss_index, sensor, c) for c in CHANNELS[sensor]]
+
+    def cleared_all(self, t_us: int, gnss_index: int) -> list[Event]:
+        """Every latched alarm, cleared (a new filter fuses every sensor again)."""
+        return [Cleared(t_us, gnss_index, s, c) for s in self.excluded if s not in self.with_receiver
+                for c in CHANNELS[s]]

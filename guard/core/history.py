@@ -1,0 +1,120 @@
+"""The filter's recent past: what a rewind needs to undo a GNSS attack, and what a late receiver needs.
+
+- `epochs`: the filter before each GNSS epoch's fusion, over the last `rewind_s`;
+- `imu_log`: every IMU fusion since the oldest epoch kept (a rewind re-runs them, GNSS left out);
+- `states`: with a receiver latency, the state after each IMU fusion, back over the latency (a late
+  fix is compared with the state of its own time).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from typing import NamedTuple
+
+import numpy as np
+
+from guard.core.ekf import TH, NavEKF
+
+
+class Epoch(NamedTuple):
+    t_us: int
+    x: np.ndarray
+    P: np.ndarray
+
+
+class ImuFusion(NamedTuple):
+    t_us: int
+    z: np.ndarray
+    H: np.ndarray
+    R: np.ndarray
+    angle_rows: tuple[int, ...]
+
+
+def keep_since(history: deque, t_us: float, at: int = 0) -> None:
+    """Drop the entries of a history of tuples whose time (item `at`) is older than t_us."""
+    while history and history[0][at] < t_us:
+        history.popleft()
+
+
+def state_minus(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a - b for two filter states, the heading's difference wrapped to (-pi, pi]."""
+    d = a - b
+    d[TH] = math.remainder(d[TH], math.tau)
+    return d
+
+
+class History:
+    def __init__(self, rewind_s: float, delay_s: float, fuse_hz: float):
+        self.rewind_s = rewind_s
+        self.delay_s = delay_s
+        self.epochs: deque[Epoch] = deque()
+        self.imu_log: deque[ImuFusion] = deque()
+        self.states: deque = deque(maxlen=int((delay_s + 1.0) * fuse_hz) + 2)   # [t_us, x] pairs
+
+    def __len__(self) -> int:
+        return len(self.epochs)
+
+    def epoch(self, t_us: int, x: np.ndarray, P: np.ndarray) -> None:
+        """The filter before a GNSS epoch's fusion, at the state's own time."""
+        self.epochs.append(Epoch(t_us, x.copy(), P.copy()))
+        keep_since(self.epochs, t_us - self.rewind_s * 1e6)
+
+    def imu_fused(self, t_us: int, fusion: ImuFusion | None, x: np.ndarray) -> None:
+        """After an IMU fusion at t_us (None: no row was fused): keep it while an epoch may need it."""
+        if fusion is not None:
+            self.imu_log.append(fusion)
+        # a rewind re-runs the fusions after its epoch: those before the oldest one kept are not needed
+        keep_since(self.imu_log, self.epochs[0].t_us if self.epochs else math.inf)
+        if self.delay_s > 0:
+            self.states.append((t_us, x.copy()))
+
+    def oldest_x(self) -> np.ndarray | None:
+        return self.epochs[0].x if self.epochs else None
+
+    def delayed(self, t_us: int, now_us: int, x_now: np.ndarray) -> np.ndarray:
+        """The filter's state delay_s before t_us, interpolated between the stored IMU-fusion states
+        (the current state last). The innovation is formed against it and the correction applied to
+        the current state with the current P (a delayed fix's usual approximation)."""
+        then = t_us - self.delay_s * 1e6
+        states = self.states
+        while len(states) > 1 and states[1][0] <= then:
+            states.popleft()
+        pts = [*states, (now_us, x_now)]
+        for (t0, x0), (t1, x1) in zip(pts, pts[1:]):
+            if t0 <= then < t1:
+                return x0 + state_minus(x1, x0) * ((then - t0) / (t1 - t0))
+        return pts[0][1].copy()     # older than the history (the first fixes): the oldest state there is
+
+    def shift(self, dx: np.ndarray) -> None:
+        """A correction made now applies to the stored states too: the next late fix sees it."""
+        for _, x in self.states:
+            x += dx
+
+    def rewind(self, ekf: NavEKF, epochs: int, now_us: int) -> None:
+        """Undo the last `epochs` GNSS epochs: back to the filter before the attack's first sample was
+        fused, then the IMU fusions since, GNSS left out, and predict to now. The bias states come back
+        with the rest (not the oldest epoch's for every rewind: in the filter's first seconds those are
+        start-up guesses, and coasting on them keeps a GNSS that agrees again out)."""
+        epochs = min(epochs, len(self.epochs))     # a run longer than the history: as far back as it goes
+        if epochs < 1:
+            return
+        t0, x, P = self.epochs[-epochs]
+        delayed, states = self.delay_s > 0, [(t0, x.copy())]   # with a receiver latency: re-run states
+        ekf.x, ekf.P, t = x.copy(), P.copy(), t0
+        for t_imu, z, H, R, angle in self.imu_log:
+            if t_imu <= t0:
+                continue
+            ekf.predict((t_imu - t) / 1e6)
+            t = t_imu
+            r, S, PHT = ekf.innovation(z, H @ ekf.x, H, R, angle_rows=angle)
+            ekf.fuse(r, S, H, R, PHT)
+            if delayed:
+                states.append((t_imu, ekf.x.copy()))
+        ekf.predict((now_us - t) / 1e6)
+        self.epochs.clear()
+        self.imu_log.clear()
+        if delayed:                 # the states before t0 stand; those after it are the re-run's
+            kept = [st for st in self.states if st[0] < t0]
+            self.states.clear()
+            self.states.extend(kept + states)

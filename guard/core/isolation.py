@@ -1,0 +1,143 @@
+"""Which sensor an alarm names: the heading's witnesses.
+
+Three sources see the heading turn: the gyro, the magnetometer and, on a ground vehicle at speed,
+the GNSS course. `Witnesses` keeps the last 2 WITNESS_S of the magnetometer's heading (with the yaw
+rate, the lateral specific force and the forward speed of each fusion) and of the GNSS course (its
+residual against the filter's track and heading), and from them names the sensor of a heading alarm
+(magnetometer, GNSS velocity):
+- the magnetometer and the course turned alike, the gyro differently from both: the gyro bent the heading;
+- the gyro and the magnetometer alike, the course apart: a GNSS velocity (a spoof) pulled it;
+- a GNSS velocity whose course agrees with the filter's heading but not with its track (the heading
+  turned by the filter's own sideways velocity): the lateral accelerometer; on wheels only it pushes
+  the track sideways.
+Without the course (in the air, standing still) a magnetometer alarm cannot be told from a gyro
+bias, and an along-track GNSS velocity alarm never can be told from an accelerometer bias (a
+coordinated spoof looks the same): the alarm names both.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from typing import NamedTuple
+
+import numpy as np
+
+from guard.core.ekf import TH, VX, VY, FilterConfig
+from guard.core.history import keep_since
+from guard.model.samples import GnssFix
+from guard.model.sensors import AMBIGUOUS, CHANNELS, Sensor
+
+WITNESS_S = 1.0        # s of course residuals weighed when a heading alarm is isolated; turns compared over 2x
+WITNESS_Z = 2.0        # a witness disagrees with the filter when its mean residual is this many standard errors
+TURN_Z = (3.0, 2.0)    # two heading sources turned differently beyond the first, alike within the second (z)
+
+
+class HeadingWitness(NamedTuple):     # one magnetometer fusion
+    t_us: int
+    heading: float
+    rate: float                       # yaw rate read by the gyro
+    ay: float                         # lateral specific force
+    vx: float                         # the filter's forward speed
+
+
+class CourseWitness(NamedTuple):      # one GNSS velocity at speed (ground vehicles)
+    r: float                          # course - (heading + the filter's sideways velocity's angle)
+    sigma: float
+    t_us: int
+    course: float
+    speed: float
+    r0: float                         # course - heading
+
+
+class Witnesses:
+    def __init__(self, f: FilterConfig, freeze_speed_mps: float):
+        self.f = f
+        self.min_speed = max(2.0 * freeze_speed_mps, 0.5)
+        self.course: deque[CourseWitness] = deque()
+        self.mag: deque[HeadingWitness] = deque()
+        self.last_vel = (np.zeros(2), np.eye(2))   # the latest GNSS velocity innovation and its S
+
+    def add_heading(self, w: HeadingWitness) -> None:
+        self.mag.append(w)
+        keep_since(self.mag, w.t_us - 2 * WITNESS_S * 1e6 + 1)
+
+    def add_course(self, fix: GnssFix, x: np.ndarray, P_heading: float, ground: bool) -> None:
+        """The GNSS course against the filter's heading x (ground vehicles, at speed)."""
+        speed = math.hypot(fix.vel_e_mps, fix.vel_n_mps)
+        if not ground or speed < self.min_speed:
+            self.course.clear()            # standing still (or nearly): no course to speak of
+            return
+        course = math.atan2(fix.vel_n_mps, fix.vel_e_mps)
+        r0 = math.remainder(course - x[TH], math.tau)          # against the heading alone
+        r = math.remainder(r0 - math.atan2(x[VY], x[VX]), math.tau)    # against the filter's track
+        self.course.append(CourseWitness(r, math.sqrt((self.f.gnss_vel_sigma_mps / speed) ** 2 + P_heading),
+                                         fix.t_us - int(self.f.gnss_delay_s * 1e6), course, speed, r0))
+        keep_since(self.course, self.course[-1].t_us - 2 * WITNESS_S * 1e6 + 1, at=2)
+
+    def fresh(self, t_us: int) -> bool:
+        """A magnetometer heard within the last second."""
+        return bool(self.mag) and t_us - self.mag[-1].t_us < 1e6
+
+    def isolate(self, sensor: Sensor, now_us: int, gyro_bias: float) -> tuple[Sensor, tuple[Sensor, ...], str | None]:
+        """Which sensor a heading alarm (magnetometer, GNSS velocity) names, what it cannot rule out,
+        and the channel when it names another sensor. A GNSS velocity whose course is off the filter's
+        track by TURN_Z[0] or more and nearer than that to its heading has been pushed sideways by the
+        filter, not by the receiver: the lateral accelerometer (one boundary for both: "alike" within
+        TURN_Z[1] missed 2 of the harness's 40 seeds of a sideways bias, on the course's noise alone,
+        while its spoofs' courses lay 4.8 or more from the heading at their alarms)."""
+        turns = self.turns(now_us, gyro_bias)
+        if turns is None or turns[1] is None:
+            return sensor, AMBIGUOUS.get(sensor, ()), None
+        z_gm, z_gc, z_mc = turns
+        if min(abs(z_gm), abs(z_gc)) >= TURN_Z[0] and abs(z_mc) < TURN_Z[1]:
+            return Sensor.GYRO, (), None
+        if sensor == Sensor.MAG and abs(z_gm) < TURN_Z[1] and min(abs(z_gc), abs(z_mc)) >= TURN_Z[0]:
+            # the gyro and the magnetometer turned alike, the course away from both: a GNSS velocity
+            # (a spoof) pulled the filter's heading off the magnetometer's; named on its worse axis
+            r, S = self.last_vel
+            return Sensor.GNSS_VEL, (), CHANNELS[Sensor.GNSS_VEL][int(np.argmax(np.abs(r) / np.sqrt(np.diagonal(S))))]
+        if sensor == Sensor.MAG:
+            return Sensor.MAG, (), None
+        last = [(w.r, w.sigma, w.r0) for w in self.course if w.t_us > self.course[-1].t_us - WITNESS_S * 1e6]
+        n = len(last)
+        r, s, r0 = np.mean(last, axis=0)
+        z, z0 = abs(r / s) * math.sqrt(n), abs(r0 / s) * math.sqrt(n)
+        if z >= TURN_Z[0] > z0:
+            return Sensor.ACCEL, (), "y"
+        return sensor, (() if z >= WITNESS_Z else AMBIGUOUS.get(sensor, ())), None
+
+    def turns(self, now_us: int, gyro_bias: float) -> tuple[float, float | None, float | None] | None:
+        """How differently the heading sources turned over the last 2 WITNESS_S, as z-scores of the
+        slope of their differences: (gyro - magnetometer, gyro - course, magnetometer - course), the
+        last two None without the course; None without the magnetometer. The gyro's heading is its
+        yaw rate, less the filter's bias, integrated."""
+        if not self.mag or now_us - self.mag[-1].t_us > 1e6 or \
+                self.mag[-1].t_us - self.mag[0].t_us < 0.97 * WITNESS_S * 1e6:
+            return None                             # no magnetometer, for over a second, or not for long yet
+        t, heading, rate = np.array(self.mag)[:, :3].T
+        t0, t = t[0], (t - t[0]) / 1e6
+        gyro = np.cumsum((rate - gyro_bias) * np.diff(t, prepend=0.0))
+
+        def slope(tt, y, sigma):                   # least-squares slope and its standard error
+            d = tt - tt.mean()
+            return float(d @ y) / float(d @ d), sigma / math.sqrt(float(d @ d))
+        s_gm, e_gm = slope(t, gyro - np.unwrap(heading), self.f.heading_sigma_rad)
+        course = [c[2:5] for c in self.course if c.t_us >= t0]
+        if len(course) < 3 or course[-1][0] - course[0][0] < 0.85 * WITNESS_S * 1e6:
+            return s_gm / e_gm, None, None
+        tc, course, speed = np.array(course).T
+        tc = (tc - t0) / 1e6
+        s_gc, e_gc = slope(tc, np.interp(tc, t, gyro) - np.unwrap(course), self.f.gnss_vel_sigma_mps / speed.min())
+        return s_gm / e_gm, s_gc / e_gc, (s_gc - s_gm) / math.hypot(e_gm, e_gc)
+
+    def lateral_bias(self, gyro_bias: float) -> float:
+        """The lateral accelerometer's offset over the last 2 s: its mean reading less the centripetal
+        acceleration of a wheel that does not slide, yaw rate (less the filter's gyro bias) x speed."""
+        _, _, rate, ay, vx = np.array(self.mag).T
+        return float(np.mean(ay - (rate - gyro_bias) * vx))
+
+    def gyro_bias(self) -> float:
+        """The gyro's offset from the magnetometer: mean yaw rate minus the slope of the heading (last 2 s)."""
+        t, heading, rate = np.array(self.mag)[:, :3].T
+        return float(np.mean(rate) - np.polyfit((t - t[0]) / 1e6, np.unwrap(heading), 1)[0])

@@ -1,0 +1,1 @@
+"""What flows between the layers: samples (sources to core), events (core to sinks), sensor names."""

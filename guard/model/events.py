@@ -1,0 +1,103 @@
+"""Events: what the core hands the sinks (MCAP log, STATUSTEXT, replay report, plots).
+
+The core's step takes one sample and returns a list of these. Sinks never look inside the filter:
+they see innovations, test statistics, alarms and the estimate, nothing else.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pymap3d
+
+from guard.model.sensors import AMBIGUOUS, CHANNELS, UNITS, Sensor   # noqa: F401 (re-exported)
+
+
+@dataclass(frozen=True, slots=True)
+class Innovation:
+    """One fusion of one sensor (PX4's record): r = y - ŷ and its covariance S = H P Hᵀ + R.
+
+    `r` has shape (m,), `S` shape (m, m), in the units of CHANNELS. `fused` is False when the
+    measurement was tested but not fused (sensor excluded while judged attacked).
+    """
+
+    t_us: int
+    sensor: Sensor
+    channels: tuple[str, ...]
+    r: np.ndarray
+    S: np.ndarray
+    fused: bool
+
+
+@dataclass(frozen=True, slots=True)
+class Tested:
+    """An innovation with the detector's statistic and threshold, one per channel."""
+
+    __test__ = False    # not a pytest test class, whatever its name
+
+    innovation: Innovation
+    gnss_index: int
+    statistic: tuple[float, ...]
+    threshold: tuple[float, ...]
+
+
+@dataclass(frozen=True, slots=True)
+class Alarm:
+    """The detector rejected H0 on one channel: an attack (or fault) is declared at t_us.
+
+    `offset` is the detector's estimate of the shift, in the channel's units (metres for GNSS
+    position): it is what a ground station shows as the size of the attack. `ambiguous_with` names
+    the other sensors that would leave the same trace (see AMBIGUOUS): the alarm does not guess.
+    """
+
+    t_us: int
+    gnss_index: int
+    sensor: Sensor
+    channel: str
+    statistic: float
+    threshold: float
+    offset: float
+    detector: str
+    ambiguous_with: tuple[Sensor, ...] = ()
+
+
+@dataclass(frozen=True, slots=True)
+class Cleared:
+    """A sensor that raised an alarm agrees with the others again."""
+
+    t_us: int
+    gnss_index: int
+    sensor: str
+    channel: str
+
+
+@dataclass(frozen=True, slots=True)
+class Notice:
+    """A status line for the operator: GNSS lost or back, filter re-initialised, and the like."""
+
+    t_us: int
+    level: str      # "info" | "warning"
+    text: str
+
+
+@dataclass(frozen=True, slots=True)
+class Estimate:
+    """The navigation estimate after a GNSS sample: position, heading, speed and covariance diagonal."""
+
+    t_us: int
+    gnss_index: int
+    east_m: float
+    north_m: float
+    yaw_rad: float          # ENU yaw: 0 = east, counter-clockwise positive
+    x: np.ndarray           # the full state, shape (11,)
+    P_diag: np.ndarray      # shape (11,)
+    origin: tuple[float, float, float]   # lat_deg, lon_deg, alt_m of the local frame's origin
+
+    def lat_lon(self) -> tuple[float, float]:
+        """The estimated position in WGS-84 degrees (computed on demand: it costs ~0.1 ms)."""
+        lat, lon, _ = pymap3d.enu2geodetic(self.east_m, self.north_m, 0.0, *self.origin)
+        return float(lat), float(lon)
+
+
+Event = Tested | Alarm | Cleared | Notice | Estimate

@@ -1,0 +1,197 @@
+"""The daemon: `guard run`. Reads a live link, runs the core, alarms on the link, logs to MCAP.
+
+Reads top to bottom: run() -> startup() -> main_loop() -> shutdown(). The signal handlers only set
+a flag (a second SIGINT or SIGTERM forces the exit); shutdown finishes the MCAP file, and run()
+restores the original handlers on the way out.
+
+What goes out on the link, and its wording, is the STATUSTEXT sink's (`guard.sinks.statustext`).
+"""
+
+from __future__ import annotations
+
+import datetime
+import logging
+import math
+import signal
+import time
+from collections import Counter
+
+from guard.config import Config
+from guard.core.monitor import Monitor
+from guard.errors import SourceError
+from guard.model.samples import GnssFix, ImuSample
+from guard.sources.link import MavlinkLink
+from guard.sources.live import open_link
+from guard.runtime.pump import Pump
+from guard.runtime.sdnotify import Notifier
+from guard.sinks.mcap import McapLog
+from guard.sinks.statustext import StatusText
+
+log = logging.getLogger(__name__)
+
+POLL_S = 0.2            # the loop wakes at least this often (watchdog, heartbeat, link timeout)
+LOG_LOST_REPEAT_S = 60.0    # how often to repeat "MCAP log lost" while it stays lost
+
+
+def say(line: str) -> None:
+    """An operator line on stdout, flushed at once (a pipe or the journal would hold it back)."""
+    print(line, flush=True)
+
+
+class Daemon:
+    def __init__(self, cfg: Config, *, connect: str | None = None, mcap: str | None = None, out=say):
+        self.cfg = cfg
+        self.connect = connect or cfg.link.connect
+        self.mcap_path = cfg.log.mcap if mcap is None else mcap
+        self.out = out                      # where operator lines go (the terminal)
+        # the core never reads the clock: the daemon tells it the day (the magnetic declination's)
+        self.monitor = Monitor(cfg.monitor, record_tests=bool(self.mcap_path), date=datetime.date.today())
+        self.pump = Pump(self.monitor)
+        self.started = False
+        self._log_errors = 0
+        self._log_warned = -math.inf
+        self.notifier = Notifier()
+        self.should_exit = False
+        self.source = None
+        self.link: MavlinkLink | None = None
+        self.log: McapLog | None = None
+        self.status = StatusText(None, cfg.link, out, self._operator)
+        self._handlers = {}
+
+    # -- life cycle ---------------------------------------------------------------------------------
+    def run(self) -> int:
+        """The command: serve() with SIGINT and SIGTERM handled."""
+        self.install_signal_handlers()
+        try:
+            return self.serve()
+        finally:
+            self.restore_signal_handlers()
+
+    def serve(self) -> int:
+        """Until should_exit is set (by a signal, or by the caller from another thread)."""
+        try:
+            self.startup()
+            self.main_loop()
+        finally:
+            self.shutdown()
+        return 0
+
+    def startup(self) -> None:
+        link_cfg = self.cfg.link
+        self.source = open_link(self.connect, self.cfg)
+        if isinstance(self.source, MavlinkLink):
+            self.link = self.source
+        elif link_cfg.connect and not link_cfg.connect.startswith("can:"):
+            self.link = MavlinkLink(link_cfg.connect, link_cfg)     # alarms still go out on MAVLink
+        if self.mcap_path:
+            c = self.cfg.log
+            self.log = McapLog(self.mcap_path, rotate_mb=c.rotate_mb or None, rotate_s=c.rotate_s or None,
+                               keep_mb=c.keep_mb or None,
+                               chunk_size=int(c.chunk_kb * 1024),
+                               metadata={"config": self.cfg.source_text, "connect": self.connect})
+            self.pump.sinks.append(self.log)
+        self.status = StatusText(self.link, link_cfg, self.out, self._operator)
+        self.pump.sinks.append(self.status)
+        self.out(f"guard: listening on {self.connect}" + (f", logging to {self.mcap_path}" if self.log else ""))
+        self.started = True
+        self.notifier.ready(f"listening on {self.connect}")
+
+    def main_loop(self) -> None:
+        # the time each stream last sent a sample (a HEARTBEAT or an ATTITUDE alone is not data), and
+        # which streams were last reported silent: an autopilot that streams GNSS but not the IMU
+        # (ArduPilot sends RAW_IMU only when its SRn_RAW_SENS rate is set) is told so
+        last = dict.fromkeys(("GNSS", "IMU"), time.monotonic())
+        silent: set[str] = set()
+        timeout = self.cfg.link.link_timeout_s
+        while not self.should_exit:
+            self.notifier.watchdog()
+            self.status.tick(self.ratio)
+            sample = self.source.poll(POLL_S)
+            now = time.monotonic()
+            if isinstance(sample, GnssFix):
+                last["GNSS"] = now
+            elif isinstance(sample, ImuSample):
+                last["IMU"] = now
+            quiet = {k for k, t in last.items() if now - t > timeout}
+            if quiet != silent:
+                if not quiet:
+                    self._operator("data is back", level="info")
+                elif quiet - silent:                # a stream fell silent
+                    what = "GNSS or IMU" if len(quiet) == 2 else next(iter(quiet))
+                    self._operator(f"no {what} data for {timeout:g} s: waiting")
+                else:                               # one came back, the other is still silent
+                    self._operator(f"{next(iter(silent - quiet))} data is back, still no "
+                                   f"{next(iter(quiet))} data", level="info")
+                silent = quiet
+            if sample is not None:
+                self.handle(sample)
+
+    def handle(self, sample) -> list:
+        """One sample through the core and out to the sinks."""
+        events = self.pump.feed(sample)
+        if self.log is not None and self.log.errors > self._log_errors:    # the sink logged why; tell the operator too
+            self._log_errors = self.log.errors
+            if time.monotonic() - self._log_warned >= LOG_LOST_REPEAT_S:
+                self._log_warned = time.monotonic()
+                self._operator("MCAP log lost: still detecting")
+        return events
+
+    @property
+    def samples(self) -> int:
+        return self.pump.samples
+
+    @property
+    def alarms(self) -> int:
+        return self.status.alarms
+
+    def ratio(self) -> float:
+        """grd_ratio: the largest statistic/threshold since the last call (an alarm's included), at least
+        1.0 while a sensor is excluded."""
+        peak, self.status.peak = self.status.peak, 0.0
+        latched = 1.0 if self.monitor.excluded else 0.0
+        return max(peak, latched, self.monitor.detector.take_peak())
+
+    def _operator(self, text: str, level: str = "warning", send: bool = True) -> None:
+        (log.warning if level == "warning" else log.info)("%s", text)
+        if send:
+            self.status.statustext(f"GUARD {text}", level)
+
+    def summary(self) -> str:
+        skipped = Counter(self.monitor.skipped)
+        for part in {id(p): p for p in (self.source, self.link) if p is not None}.values():
+            skipped.update(getattr(part, "skipped", None) or getattr(part, "stats", None) or {})
+        skipped = {k: v for k, v in sorted(skipped.items()) if v}
+        lost = f", MCAP errors {self.log.errors} ({self.log.lost_messages} messages lost)" if self.log and \
+            self.log.errors else ""
+        return f"guard: stopped after {self.samples} samples, {self.alarms} alarm(s); skipped {skipped}{lost}"
+
+    def shutdown(self) -> None:
+        if self.started:
+            self.notifier.stopping()
+        self.pump.finish()          # what the core still owed (an alarm's estimate) reaches the log
+        if self.log is not None:
+            self.log.close()
+            if self.log.errors:
+                log.error("MCAP log: %d write errors, %d messages lost", self.log.errors, self.log.lost_messages)
+        for part in {id(p): p for p in (self.source, self.link) if p is not None}.values():
+            try:
+                part.close()
+            except (OSError, SourceError) as e:
+                log.warning("closing %s: %s", type(part).__name__, e)
+        if self.started:
+            self.out(self.summary())
+
+    # -- signals --------------------------------------------------------------------------------------
+    def install_signal_handlers(self) -> None:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            self._handlers[sig] = signal.signal(sig, self.handle_exit)
+
+    def restore_signal_handlers(self) -> None:
+        for sig, handler in self._handlers.items():
+            signal.signal(sig, handler)
+        self._handlers.clear()
+
+    def handle_exit(self, sig, frame) -> None:
+        if self.should_exit:
+            raise KeyboardInterrupt     # a second signal: stop now, shutdown() still runs
+        self.should_exit = True

@@ -1,0 +1,71 @@
+"""Offline replay of a log through the core: the report of DESIGN.md, and what a figure needs.
+
+The log's format is recognised by its content (`guard.sources.open_log`); its samples go through the
+same pump as the daemon's.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+from guard.config import Config
+from guard.core.monitor import Monitor
+from guard.runtime.pump import Pump
+from guard.sinks.report import ReportSink, write_report
+from guard.sources import open_log
+
+__all__ = ["Progress", "replay", "truth_beside", "write_report"]
+
+
+class Progress:
+    """A progress bar on stderr, only when stderr is a terminal."""
+
+    def __init__(self, total: int, enabled: bool):
+        self.total, self.enabled, self.last = max(total, 1), enabled and sys.stderr.isatty(), 0.0
+
+    def update(self, done: int, force: bool = False) -> None:
+        now = time.monotonic()
+        if not self.enabled or (now - self.last < 0.2 and not force):
+            return
+        self.last = now
+        frac = min(1.0, done / self.total)
+        bar = "#" * int(30 * frac)
+        sys.stderr.write(f"\rreplay [{bar:<30}] {100 * frac:5.1f} %")
+        if force:
+            sys.stderr.write("\n")
+        sys.stderr.flush()
+
+
+def replay(path: str, cfg: Config | None = None, *, listeners=(), progress: bool = False) -> dict:
+    """Run a log through the core; return the report (JSON-ready dict).
+
+    `listeners` are sinks: they get on_sample(sample) and on_events(events) for every sample (a
+    Trace, an McapLog).
+    """
+    cfg = cfg or Config()
+    source = open_log(path, system_id=cfg.link.system_id if cfg.link.system_id else 0)
+    monitor = Monitor(cfg.monitor, record_tests=bool(listeners), date=source.date)
+    report = ReportSink()
+    pump = Pump(monitor, [report, *listeners])
+    bar = Progress(source.size, progress)
+    try:
+        pump.run(source.samples(), every=2048, tick=lambda: bar.update(source.position))
+        bar.update(source.size, force=True)
+    finally:
+        source.close()
+    return report.report(source, monitor, cfg.monitor.detector)
+
+
+def truth_beside(path: str) -> dict | None:
+    """The simulator's NAME.truth.json beside NAME.tlog (.bin, .ulg), if there is one."""
+    p = Path(path)
+    truth = p.with_name(p.stem + ".truth.json")
+    if not truth.is_file():
+        return None
+    try:
+        return json.loads(truth.read_text())
+    except (OSError, ValueError):
+        return None

@@ -1,0 +1,1 @@
+"""Sinks: listen to the core's events (STATUSTEXT, MCAP log, replay report, figures)."""

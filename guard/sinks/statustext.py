@@ -1,0 +1,106 @@
+"""The alarm where the operator looks: STATUSTEXT on the MAVLink link, and guard's own HEARTBEAT and
+grd_ratio (NAMED_VALUE_FLOAT) as an onboard computer (component 191).
+
+- STATUSTEXT CRITICAL when an alarm is raised (sensor, axis, estimated offset, GNSS sample), and
+  NOTICE when it clears; an alarm stays latched while the sensor is excluded, so it is sent once;
+  a core Notice at WARNING goes out at WARNING. Warnings and notices are rate-limited; an alarm never is.
+- A text longer than 50 bytes goes in MAVLink 2 chunks (one id, chunk_seq 0, 1, ...).
+- NAMED_VALUE_FLOAT "grd_ratio": the largest statistic/threshold ratio since the last send.
+The wording of every line is here; the daemon and the terminal print the same lines.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+from collections.abc import Callable
+
+from guard.model.events import UNITS, Alarm, Cleared, Notice
+from guard.sinks.base import Sink
+from guard.sources.link import MavlinkLink, mavlink
+
+STATUSTEXT_PER_S = 4                                    # rate limit of what we send
+
+
+def alarm_text(e: Alarm) -> str:
+    """At most 50 characters, readable on a ground station: sensor(s), axis, offset, GNSS sample."""
+    sensors = "|".join((e.sensor, *e.ambiguous_with))     # "mag|gyro": either, the physics cannot tell here
+    return f"GUARD ALARM {sensors} {e.channel} {e.offset:+.3g}{UNITS[e.sensor]} k={e.gnss_index}"[:50]
+
+
+def clear_text(e: Cleared) -> str:
+    return f"GUARD clear {e.sensor} {e.channel} k={e.gnss_index}"
+
+
+class StatusText(Sink):
+    """Sends the core's alarms, clearances and warnings on `link` (None: the terminal only), and
+    prints each on `out`. `alarms` counts the alarms sent; `peak` the largest alarm ratio since
+    the last grd_ratio."""
+
+    def __init__(self, link: MavlinkLink | None, cfg, out: Callable[[str], None], operator: Callable):
+        self.link, self.cfg, self.out, self.operator = link, cfg, out, operator
+        self.alarms = 0
+        self.peak = 0.0
+        self.skipped = link.skipped if link is not None else Counter()
+        self.t0 = time.monotonic()
+        self._next_heartbeat = 0.0
+        self._next_stat = 0.0
+        self._sent: list[float] = []
+        self._text_id = 0                   # the last long STATUSTEXT's chunk id
+
+    def on_events(self, events) -> None:
+        for e in events:
+            if isinstance(e, Alarm):
+                self.alarms += 1
+                self.peak = max(self.peak, e.statistic / e.threshold if e.threshold else 1.0)
+                text = alarm_text(e)
+                self.out(f"guard: {text} (t={e.t_us / 1e6:.2f} s, statistic {e.statistic:.1f} > {e.threshold:.1f})")
+                self.statustext(text, "critical")
+            elif isinstance(e, Cleared):
+                text = clear_text(e)
+                self.out(f"guard: {text}")
+                self.statustext(text, "notice")
+            elif isinstance(e, Notice):
+                self.operator(e.text, level=e.level, send=e.level == "warning")
+
+    def tick(self, ratio=lambda: 0.0) -> None:
+        """Heartbeat and the statistic (`ratio()`, called only when due), when due."""
+        now = time.monotonic()
+        if now >= self._next_heartbeat:
+            self._next_heartbeat = now + 1.0 / self.cfg.heartbeat_hz
+            self._send(lambda m: m.heartbeat_send(mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID,
+                                                  0, 0, mavlink.MAV_STATE_ACTIVE))
+        if self.cfg.statistic_hz > 0 and now >= self._next_stat:
+            self._next_stat = now + 1.0 / self.cfg.statistic_hz
+            value = float(ratio())
+            ms = int((now - self.t0) * 1000) & 0xFFFFFFFF
+            self._send(lambda m: m.named_value_float_send(ms, b"grd_ratio", value))
+
+    def statustext(self, text: str, level: str) -> None:
+        """Send a STATUSTEXT at `level` ("critical", "warning" or "notice"). Warnings and notices are
+        rate-limited; a CRITICAL alarm never is (it is sent once)."""
+        critical = level == "critical"
+        now = time.monotonic()
+        self._sent = [t for t in self._sent if now - t < 1.0]
+        if not critical and len(self._sent) >= STATUSTEXT_PER_S:
+            self.skipped["statustext_rate_limited"] += 1
+            return
+        self._sent.append(now)
+        severity = {"critical": mavlink.MAV_SEVERITY_CRITICAL, "warning": mavlink.MAV_SEVERITY_WARNING}.get(
+            level, mavlink.MAV_SEVERITY_NOTICE)
+        data = text.encode()
+        if len(data) <= 50:
+            self._send(lambda m: m.statustext_send(severity, data))
+            return
+        # longer: MAVLink 2 chunks (id, chunk_seq), which ground stations join; a chunk shorter than 50
+        # bytes ends the text (an empty one if it divides evenly)
+        self._text_id = self._text_id % 0xFFFF + 1
+        chunks = [data[i:i + 50] for i in range(0, len(data), 50)]
+        if len(chunks[-1]) == 50:
+            chunks.append(b"")
+        for seq, chunk in enumerate(chunks):
+            self._send(lambda m: m.statustext_send(severity, chunk, id=self._text_id, chunk_seq=seq))
+
+    def _send(self, fn) -> None:
+        if self.link is not None:
+            self.link.send(fn)

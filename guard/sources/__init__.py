@@ -1,0 +1,48 @@
+"""Sources: turn wire messages and log files into samples in SI units.
+
+Log files are recognised by their content, not their name (`open_log`): each format's module gives
+a `looks_like(head)` check of the file's first bytes and a reader class, registered in LOG_FORMATS
+and imported only when a file of its kind is opened (as python-can's BACKENDS). Adding a format is
+one module plus one line here. Live links: `guard.sources.link` (MAVLink UDP/TCP/serial) and
+`guard.sources.can` (DroneCAN through python-can), chosen by `guard.sources.live.open_link`.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+from guard.errors import SourceError
+from guard.sources.base import LogSource
+
+# format name -> (module, sniffing function, reader class)
+LOG_FORMATS: dict[str, tuple[str, str, str]] = {
+    "tlog": ("guard.sources.tlog", "looks_like_tlog", "TlogReader"),
+}
+HEAD_BYTES = 64
+
+
+def log_format(path: str) -> str | None:
+    """The name of the format `path` holds, from its first bytes (None: none guard reads)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(HEAD_BYTES)
+    except OSError as e:
+        raise SourceError(f"{path}: cannot open: {e.strerror}") from None
+    for name, (module, sniff, _) in LOG_FORMATS.items():
+        if getattr(importlib.import_module(module), sniff)(head):
+            return name
+    return None
+
+
+def open_log(path: str, **options) -> LogSource:
+    """A reader for the log at `path`, whatever its format. `options` go to the reader
+    (`system_id` for MAVLink logs, `imu` and `gnss` instance numbers where a log holds several)."""
+    name = log_format(path)
+    if name is None:
+        if path.endswith(".tlog"):          # a tlog that starts with garbage: its reader resynchronises
+            name = "tlog"
+        else:
+            known = ", ".join(LOG_FORMATS)
+            raise SourceError(f"{path}: not a log guard reads (known formats: {known})")
+    module, _, cls = LOG_FORMATS[name]
+    return getattr(importlib.import_module(module), cls)(path, **options)

@@ -1,0 +1,58 @@
+"""The MAVLink edge: messages to samples (units converted here, once).
+
+GPS_RAW_INT: lat/lon degE7, alt mm, vel cm/s, cog cdeg (UINT16_MAX = unknown), h_acc mm,
+vel_acc mm/s; fix_type < 3 is no 3D fix. RAW_IMU (ArduPilot): acceleration mG (specific force),
+gyro mrad/s, magnetometer mGauss, body FRD. ATTITUDE: roll, pitch rad; time_boot_ms.
+HEARTBEAT of an autopilot (autopilot != INVALID): its type; a GROUND_ROVER is a ground vehicle.
+
+Read from a live link (`guard.sources.link`) and from tlog files (`guard.sources.tlog`).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+
+os.environ.setdefault("MAVLINK20", "1")     # before pymavlink is imported, or frames are MAVLink 1
+
+from pymavlink.dialects.v20 import ardupilotmega as mavlink   # noqa: E402
+
+from guard.model.samples import Attitude, GnssFix, ImuSample, Sample, VehicleType   # noqa: E402
+
+G = 9.80665
+UNKNOWN_U16 = 65535
+WANTED = {mavlink.MAVLINK_MSG_ID_GPS_RAW_INT, mavlink.MAVLINK_MSG_ID_RAW_IMU, mavlink.MAVLINK_MSG_ID_ATTITUDE,
+          mavlink.MAVLINK_MSG_ID_HEARTBEAT}
+
+
+def to_sample(msg) -> tuple[Sample | None, str | None]:
+    """Convert one decoded message to a sample, or (None, reason it was skipped)."""
+    name = msg.get_type()
+    if name == "GPS_RAW_INT":
+        fix_ok = msg.fix_type >= 3
+        lat, lon = msg.lat * 1e-7, msg.lon * 1e-7
+        if fix_ok and not (abs(lat) <= 90 and abs(lon) <= 180 and (lat, lon) != (0.0, 0.0)):
+            return None, "gnss_bad_position"
+        vn = ve = None
+        if msg.vel != UNKNOWN_U16 and msg.cog != UNKNOWN_U16:
+            speed, cog = msg.vel / 100.0, math.radians(msg.cog / 100.0)
+            vn, ve = speed * math.cos(cog), speed * math.sin(cog)
+        h_acc = getattr(msg, "h_acc", 0)
+        vel_acc = getattr(msg, "vel_acc", 0)
+        return GnssFix(int(msg.time_usec), fix_ok, lat, lon, msg.alt / 1000.0, vn, ve,
+                       h_acc / 1000.0 if h_acc else None, vel_acc / 1000.0 if vel_acc else None), None
+    if name == "RAW_IMU":
+        a, w = G / 1000.0, 1e-3
+        mag = (msg.xmag, msg.ymag, msg.zmag)
+        mx, my, mz = (None, None, None) if mag == (0, 0, 0) else (m / 1000.0 for m in mag)
+        return ImuSample(int(msg.time_usec), msg.xacc * a, msg.yacc * a, msg.zacc * a,
+                         msg.xgyro * w, msg.ygyro * w, msg.zgyro * w, mx, my, mz), None
+    if name == "ATTITUDE":
+        if not (math.isfinite(msg.roll) and math.isfinite(msg.pitch)) or abs(msg.pitch) > 1.5:
+            return None, "attitude_non_finite"
+        return Attitude(int(msg.time_boot_ms) * 1000, msg.roll, msg.pitch), None
+    if name == "HEARTBEAT":
+        if msg.autopilot == mavlink.MAV_AUTOPILOT_INVALID:     # a ground station or a companion, not the vehicle
+            return None, None
+        return VehicleType(msg.type == mavlink.MAV_TYPE_GROUND_ROVER), None
+    return None, None

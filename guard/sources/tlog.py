@@ -1,0 +1,136 @@
+"""tlog files: [8-byte big-endian unix microseconds][MAVLink frame], as MAVProxy and Mission Planner
+write them. The reader splits frames itself so that garbage between frames, bad CRCs and a truncated
+tail are counted and skipped rather than fatal, and it decodes (with pymavlink) only the messages
+guard uses; `guard.sources.mavlink.to_sample` converts them (units, once).
+"""
+
+from __future__ import annotations
+
+import datetime
+import mmap
+import os
+from collections.abc import Iterator
+
+from guard.errors import SourceError
+from guard.model.samples import Sample
+from guard.sources.base import LogSource
+from guard.sources.mavlink import WANTED, mavlink, to_sample
+
+V1, V2 = 0xFE, 0xFD
+T_MIN_US, T_MAX_US = 946_684_800_000_000, 4_102_444_800_000_000    # a tlog prefix is unix time: 2000..2100
+DAY_US = 86_400_000_000
+
+
+def looks_like_tlog(head: bytes) -> bool:
+    """A tlog starts with a plausible unix-microsecond prefix and a MAVLink start byte."""
+    return len(head) >= 9 and T_MIN_US <= int.from_bytes(head[:8], "big") <= T_MAX_US and head[8] in (V1, V2)
+
+
+class TlogReader(LogSource):
+    """Iterates over the frames of a tlog; `messages` and `skipped` count what it saw."""
+
+    def __init__(self, path: str, system_id: int = 0):
+        super().__init__()
+        self.path = path
+        self.system_id = system_id          # 0: any system
+        self.mav = mavlink.MAVLink(None)
+        self.mav.robust_parsing = True
+        try:
+            self._file = open(path, "rb")
+        except OSError as e:
+            raise SourceError(f"{path}: cannot open: {e.strerror}") from None
+        self.size = os.fstat(self._file.fileno()).st_size
+        self.position = 0
+        first = int.from_bytes(self._file.read(8), "big") if self.size >= 8 else 0
+        # the day it was recorded, from the first frame's time prefix (None if the log starts with garbage)
+        self.date = (datetime.datetime.fromtimestamp(first / 1e6, datetime.timezone.utc).date()
+                     if T_MIN_US <= first <= T_MAX_US else None)
+        self.first_time_us: int | None = None
+        self.last_time_us: int | None = None
+
+    def close(self) -> None:
+        self._file.close()
+
+    def samples(self) -> Iterator[Sample]:
+        for msg in self:
+            sample, reason = to_sample(msg)
+            if sample is not None:
+                yield sample
+            elif reason:
+                self.skipped[reason] += 1
+
+    def __iter__(self) -> Iterator:
+        """Yield decoded messages of the WANTED types (others are only counted)."""
+        if self.size == 0:
+            return
+        with mmap.mmap(self._file.fileno(), 0, access=mmap.ACCESS_READ) as buf:
+            yield from self._frames(buf)
+
+    def _frames(self, buf) -> Iterator:
+        size, pos, names = self.size, 0, mavlink.mavlink_map
+        decode, count, skip = self.mav.decode, self.messages, self.skipped
+        last_t = None
+        while pos + 8 < size:
+            stx = buf[pos + 8]
+            t = int.from_bytes(buf[pos:pos + 8], "big")
+            # a frame starts with a start byte after a plausible time prefix; anything else is
+            # garbage (or a false start byte inside garbage): resynchronise on the next start byte
+            if stx not in (V1, V2) or not (T_MIN_US <= t <= T_MAX_US and (last_t is None or
+                                                                       abs(t - last_t) < DAY_US)):
+                nxt = min((i for i in (buf.find(b"\xfd", pos + 9), buf.find(b"\xfe", pos + 9)) if i >= 0),
+                          default=-1)
+                skip["garbage_bytes"] += (nxt - 8 - pos) if nxt >= 0 else size - pos
+                if nxt < 0:
+                    break
+                pos = nxt - 8
+                continue
+            if stx == V2 and pos + 18 <= size:
+                length = 12 + buf[pos + 9] + (13 if buf[pos + 10] & 1 else 0)
+                msgid = buf[pos + 15] | buf[pos + 16] << 8 | buf[pos + 17] << 16
+                sysid = buf[pos + 13]
+            elif stx == V1 and pos + 14 <= size:
+                length = 8 + buf[pos + 9]
+                msgid, sysid = buf[pos + 13], buf[pos + 11]
+            else:
+                skip["truncated"] += 1
+                break
+            end = pos + 8 + length
+            if end > size:
+                skip["truncated"] += 1
+                break
+            self.position = end
+            kind = names.get(msgid)
+            # a frame guard does not use is only counted, not decoded, when it is plausible: a known
+            # type and the next frame starting right after it; anything else is checked by its CRC
+            plausible = kind is not None and (end == size or end + 8 < size and buf[end + 8] in (V1, V2))
+            if msgid not in WANTED and plausible:
+                count[kind.msgname] += 1
+                last_t = t
+                pos = end
+                continue
+            try:
+                msg = decode(bytearray(buf[pos + 8:end]))
+            except mavlink.MAVError:
+                skip["bad_crc"] += 1
+                pos += 1        # perhaps a false start byte: look for the next one
+                continue
+            last_t = t
+            count[msg.get_type()] += 1
+            if msgid not in WANTED:
+                pos = end
+                continue
+            if self.system_id and sysid != self.system_id:
+                skip["other_system"] += 1
+            else:
+                self.first_time_us = self.first_time_us or t
+                self.last_time_us = t
+                yield msg
+            pos = end
+        else:
+            if pos < size:
+                skip["truncated"] += 1
+
+
+def tlog_samples(reader: TlogReader) -> Iterator[Sample]:
+    """Samples of a tlog in stream order; conversion failures are counted in reader.skipped."""
+    return reader.samples()

@@ -1,0 +1,115 @@
+"""The harness's metrics over its runs (see tools/eval.py's docstring), and its two figures."""
+
+from __future__ import annotations
+
+import csv
+import math
+import statistics
+from pathlib import Path
+
+import numpy as np
+
+
+def pct(values, q):
+    return float(np.percentile(values, q)) if values else None
+
+
+def extrapolate(rs: list[dict]) -> float | None:
+    """Hours per false alarm at guard's threshold, extrapolated from clean runs: the rate of runs whose
+    peak statistic/threshold reaches a scale m, fitted log-linearly over m = 0.5 .. 0.85, at m = 1.
+    An extrapolation of the tail, not a measurement; None unless 3 runs reach each of 3 scales or more."""
+    peaks = np.array([r["peak_ratio"] for r in rs if r["peak_ratio"] is not None])
+    hours = sum(r["hours"] for r in rs if r["peak_ratio"] is not None)
+    # a scale counts when at least 3 runs reach it: a rate from one or two runs is noise
+    pts = [(m, (peaks >= m).sum() / hours) for m in np.arange(0.5, 0.851, 0.05) if (peaks >= m).sum() >= 3]
+    if len(pts) < 3:
+        return None
+    a, b = np.polyfit([m for m, _ in pts], [math.log10(rate) for _, rate in pts], 1)
+    return float(10.0 ** -(a + b))
+
+
+def read_runs(path: Path) -> list[dict]:
+    """runs.csv of an earlier campaign, typed back: numbers, booleans and empty fields (None)."""
+    def typed(v: str):
+        if v in ("", "None"):
+            return None
+        if v in ("True", "False"):
+            return v == "True"
+        try:
+            return int(v)
+        except ValueError:
+            try:
+                return float(v)
+            except ValueError:
+                return v
+    with open(path, newline="") as f:
+        return [{k: typed(v) for k, v in row.items()} for row in csv.DictReader(f)]
+
+
+def summarise(rows: list[dict], gnss_hz: float, arl0_samples: float) -> list[dict]:
+    out = []
+    keys = sorted({(r["family"], r["case"], r["detector"]) for r in rows}, key=lambda k: (k[0], k[1], k[2]))
+    for family, case, det in keys:
+        rs = [r for r in rows if (r["family"], r["case"], r["detector"]) == (family, case, det)]
+        delays = [r["delay"] for r in rs if r["delay"] is not None]
+        hours = sum(r["hours"] for r in rs)
+        s = {"family": family, "case": case, "detector": det, "runs": len(rs),
+             "detection_rate": sum(r["detected"] for r in rs) / len(rs) if family != "clean" else None,
+             "median_delay_samples": pct(delays, 50), "p95_delay_samples": pct(delays, 95),
+             "median_delay_s": pct(delays, 50) / gnss_hz if delays else None,
+             "p95_delay_s": pct(delays, 95) / gnss_hz if delays else None,
+             "false_alarms_per_h": sum(r["false_alarms"] for r in rs) / hours,
+             "isolation_rate": (sum(r["isolated"] for r in rs) / max(1, sum(r["detected"] for r in rs)))
+             if delays else None,
+             "ambiguous_rate": (sum(r["ambiguous"] for r in rs) / max(1, sum(r["detected"] for r in rs)))
+             if delays else None,
+             "median_error_at_alarm_m": pct([r["error_at_alarm_m"] for r in rs if r["detected"]], 50),
+             "p95_error_at_alarm_m": pct([r["error_at_alarm_m"] for r in rs if r["detected"]], 95),
+             "named": sorted({r["first_sensor"] for r in rs if r["first_sensor"]}),
+             "worst_error_30s_after_m": max((r.get("error_30s_after_m") or 0.0 for r in rs), default=None),
+             "clean_hours": hours if family == "clean" else None,
+             "max_peak_ratio": max((r["peak_ratio"] for r in rs if r["peak_ratio"] is not None), default=None)
+             if family == "clean" else None,
+             "extrapolated_fa_interval_h": extrapolate(rs) if family == "clean" else None}
+        if family == "step":
+            size = float(case.split()[2])
+            S = statistics.median(r["S_pos"] for r in rs if r["S_pos"])
+            info = size * size / (2 * S)                      # I = nu^2 / (2 S) per GNSS sample
+            s["lorden_bound_samples"] = math.log(arl0_samples) / info
+            if delays:
+                # delay counted from the first attacked sample: an alarm on it is one sample of data
+                s["delay_over_lorden"] = (statistics.median(delays) + 1) / max(s["lorden_bound_samples"], 1.0)
+        out.append(s)
+    return out
+
+
+def plots(summary: list[dict], rows: list[dict], out: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    clean = [r for r in rows if r["family"] == "clean" and r["peak_ratio"] is not None]
+    if clean:
+        peaks = np.array([r["peak_ratio"] for r in clean])
+        hours = sum(r["hours"] for r in clean)
+        scale = np.linspace(0.2, 1.5, 131)
+        fig, ax = plt.subplots(figsize=(6, 4))
+        ax.plot(scale, [(peaks >= m).sum() / hours for m in scale], label=f"cusum, {hours:.0f} clean hours")
+        ax.axvline(1.0, color="k", ls="--", label="guard's threshold")
+        ax.set_yscale("symlog", linthresh=0.01)
+        ax.set_ylim(bottom=0.0)
+        ax.set_xlabel("threshold scale (1 = set from the target interval)")
+        ax.set_ylabel("clean runs alarmed per hour (a lower bound)")
+        ax.legend(fontsize=8); fig.tight_layout(); fig.savefig(out / "fa_vs_threshold.png", dpi=110); plt.close(fig)
+    steps = [s for s in summary if s["family"] == "step" and "north" in s["case"]]
+    if steps:
+        fig, ax = plt.subplots(figsize=(6, 4))
+        for det in sorted({s["detector"] for s in steps}):
+            pts = sorted((float(s["case"].split()[2]), s["median_delay_samples"]) for s in steps
+                         if s["detector"] == det and s["median_delay_samples"] is not None)
+            if pts:
+                ax.plot(*zip(*pts), marker="o", label=det)
+        bound = sorted({(float(s["case"].split()[2]), s["lorden_bound_samples"]) for s in steps})
+        ax.plot(*zip(*bound), "k--", label="Lorden bound ln(ARL0)/I")
+        ax.set_xscale("log"); ax.set_yscale("symlog")
+        ax.set_xlabel("GNSS north step (m)"); ax.set_ylabel("median delay (GNSS samples)")
+        ax.legend(fontsize=8); fig.tight_layout(); fig.savefig(out / "delay_vs_step.png", dpi=110); plt.close(fig)
