@@ -36,7 +36,7 @@ def _replay(args) -> int:
         log = McapLog(args.mcap, metadata={"config": cfg.source_text, "source": args.file})
         listeners.append(log)
     try:
-        report = replay(args.file, cfg, listeners=listeners, progress=args.report != "-")
+        report = replay(args.file, cfg, listeners=listeners, progress=args.report != "-", imu=args.imu, gnss=args.gnss)
     finally:
         if log:
             log.close()
@@ -52,9 +52,8 @@ def _replay(args) -> int:
         skipped = sum(report["skipped"].values())
         print(f"{args.file}: {report['duration_s']:.1f} s, {report['gnss_samples']} GNSS samples, "
               f"{len(alarms)} alarm(s), {first}; skipped {skipped}")
-    if not report["gnss_samples"] and report["skipped"].get("other_system"):     # stderr: also with --report -
-        print(f"{args.file}: every message came from another system than {cfg.link.system_id}: "
-              "try --system-id 0 (every system)", file=sys.stderr)
+        for note in report["notes"]:
+            print(f"  {note}")
     return 0
 
 
@@ -127,8 +126,11 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("--mcap", help="MCAP log file or directory (overrides log.mcap)")
     r.set_defaults(func=_run)
 
-    r = sub.add_parser("replay", help="run a tlog through the detector offline")
-    r.add_argument("file", help="a .tlog file")
+    r = sub.add_parser("replay", help="run a log through the detector offline (tlog, DataFlash .bin, ULog .ulg)")
+    r.add_argument("file", help="a log: .tlog (MAVLink), .bin (ArduPilot DataFlash) or .ulg (PX4 ULog), "
+                   "recognised by its content")
+    r.add_argument("--imu", type=int, metavar="N", help="the IMU instance to read, in a log with several (default: the primary)")
+    r.add_argument("--gnss", type=int, metavar="N", help="the GNSS receiver to read, in a log with several")
     r.add_argument("--config", help="TOML config file")
     r.add_argument("--detector", choices=["cusum", "paper", "gate", "chi2"], help="override detector.name")
     r.add_argument("--system-id", type=_system_id, help="the autopilot's MAVLink system id (overrides link.system_id; "

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from guard.config import Config
 from guard.core.monitor import Monitor
+from guard.errors import SourceError
 from guard.runtime.pump import Pump
 from guard.sinks.report import ReportSink, write_report
 from guard.sources import open_log
@@ -39,14 +40,18 @@ class Progress:
         sys.stderr.flush()
 
 
-def replay(path: str, cfg: Config | None = None, *, listeners=(), progress: bool = False) -> dict:
+def replay(path: str, cfg: Config | None = None, *, listeners=(), progress: bool = False,
+           imu: int | None = None, gnss: int | None = None) -> dict:
     """Run a log through the core; return the report (JSON-ready dict).
 
     `listeners` are sinks: they get on_sample(sample) and on_events(events) for every sample (a
-    Trace, an McapLog).
+    Trace, an McapLog). `imu`, `gnss`: which instance, in a log that holds several (None: the
+    primary). A log from which no GNSS fix could be read is a SourceError saying what was found:
+    never a clean-looking report of nothing.
     """
     cfg = cfg or Config()
-    source = open_log(path, system_id=cfg.link.system_id if cfg.link.system_id else 0)
+    options = {k: v for k, v in (("imu", imu), ("gnss", gnss)) if v is not None}
+    source = open_log(path, system_id=cfg.link.system_id if cfg.link.system_id else 0, **options)
     monitor = Monitor(cfg.monitor, record_tests=bool(listeners), date=source.date)
     report = ReportSink()
     pump = Pump(monitor, [report, *listeners])
@@ -56,7 +61,18 @@ def replay(path: str, cfg: Config | None = None, *, listeners=(), progress: bool
         bar.update(source.size, force=True)
     finally:
         source.close()
-    return report.report(source, monitor, cfg.monitor.detector)
+    out = report.report(source, monitor, cfg.monitor.detector)
+    if not out["samples"].get("gnss"):
+        raise SourceError(f"{path}: no GNSS sample could be read: {nothing_read(out)}")
+    return out
+
+
+def nothing_read(report: dict) -> str:
+    """What a log held, in one line, when it held nothing guard could monitor."""
+    found = ", ".join(f"{n} {k}" for k, n in sorted(report["messages"].items(), key=lambda kv: -kv[1])[:6])
+    skipped = ", ".join(f"{n} {k}" for k, n in sorted(report["skipped"].items(), key=lambda kv: -kv[1])[:4])
+    hint = " (try --system-id 0: every system)" if report["skipped"].get("other_system") else ""
+    return f"found {found or 'no message'}" + (f"; skipped {skipped}" if skipped else "") + hint
 
 
 def truth_beside(path: str) -> dict | None:

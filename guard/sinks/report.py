@@ -10,7 +10,10 @@ from dataclasses import asdict
 from pathlib import Path
 
 from guard.model.events import Alarm, Cleared, Notice
+from guard.model.samples import Attitude, GnssFix, ImuSample
 from guard.sinks.base import Sink
+
+KINDS = {GnssFix: "gnss", ImuSample: "imu", Attitude: "attitude"}
 
 
 class ReportSink(Sink):
@@ -18,6 +21,12 @@ class ReportSink(Sink):
         self.alarms: list[dict] = []
         self.cleared: list[dict] = []
         self.notices: list[dict] = []
+        self.samples: Counter[str] = Counter()      # samples read, per kind
+
+    def on_sample(self, sample) -> None:
+        kind = KINDS.get(type(sample))
+        if kind:
+            self.samples[kind] += 1
 
     def on_events(self, events) -> None:
         for e in events:
@@ -37,12 +46,17 @@ class ReportSink(Sink):
         duration = 0.0 if source.first_time_us is None else (source.last_time_us - source.first_time_us) / 1e6
         return {
             "source": str(source.path),
+            "format": type(source).__name__.removesuffix("Reader").lower(),
             "duration_s": round(duration, 3),
             "messages": dict(sorted(source.messages.items())),
             "skipped": dict(sorted(skipped.items())),
             "detector": detector_cfg.name,
             "detector_config": json.loads(json.dumps(asdict(detector_cfg))),   # tuples as lists
             "gnss_samples": monitor.gnss_index + 1,
+            "samples": dict(sorted(self.samples.items())),
+            "rates_hz": {k: round(v, 2) for k, v in getattr(source, "rates_hz", {}).items()},
+            "notes": list(source.notes),
+            "autopilot": list(source.verdicts),     # the autopilot's own findings, where the log has them
             "peak_ratio": {s: round(v, 3) for s, v in sorted(monitor.detector.peak.items())},
             "alarms": self.alarms,
             "cleared": self.cleared,

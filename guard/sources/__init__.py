@@ -17,6 +17,8 @@ from guard.sources.base import LogSource
 # format name -> (module, sniffing function, reader class)
 LOG_FORMATS: dict[str, tuple[str, str, str]] = {
     "tlog": ("guard.sources.tlog", "looks_like_tlog", "TlogReader"),
+    "dataflash": ("guard.sources.dataflash", "looks_like_dataflash", "DataFlashReader"),
+    "ulog": ("guard.sources.ulog", "looks_like_ulog", "UlogReader"),
 }
 HEAD_BYTES = 64
 

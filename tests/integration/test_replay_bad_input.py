@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from guard.errors import SourceError
 from guard.runtime.replay import replay
 from sim import scenario as scn
 from sim.mavout import TLOG_EPOCH_US
@@ -95,34 +96,29 @@ def test_truncated_tlog_keeps_the_intact_part(paper, tmp_path, into):
 
 # -- not a tlog at all ----------------------------------------------------------------------------
 
-def assert_nothing_found(report):
-    assert report["gnss_samples"] == 0
-    assert report["alarms"] == []
-    assert "GPS_RAW_INT" not in report["messages"] and "RAW_IMU" not in report["messages"]
+def nothing_found(path: str) -> str:
+    """A replay of a file with no GNSS sample in it: a SourceError naming the file; its message."""
+    with pytest.raises(SourceError, match="no GNSS sample could be read") as e:
+        replay(path)
+    assert path in str(e.value) and "\n" not in str(e.value)
+    return str(e.value)
 
 
 def test_random_bytes(tmp_path):
     data = np.random.default_rng(42).integers(0, 256, 20_000, dtype=np.uint8).tobytes()
-    report = replay(write(tmp_path, "random.tlog", data))
-    assert report["skipped"]["garbage_bytes"] > 0
-    assert_nothing_found(report)
+    assert "garbage_bytes" in nothing_found(write(tmp_path, "random.tlog", data))
 
 
 def test_text_file(tmp_path):
     text = "".join(f"line {i}: this is a README, not a telemetry log\n" for i in range(200)).encode()
-    report = replay(write(tmp_path, "notes.tlog", text))
-    assert report["skipped"] == {"garbage_bytes": len(text)}        # text has no MAVLink start byte
-    assert report["messages"] == {}
-    assert_nothing_found(report)
+    why = nothing_found(write(tmp_path, "notes.tlog", text))
+    assert f"found no message; skipped {len(text)} garbage_bytes" in why, why    # text has no start byte
 
 
 @pytest.mark.parametrize("data", [b"", b"\xfd", b"12345678"])
 def test_empty_and_tiny_files(tmp_path, data):
-    report = replay(write(tmp_path, "tiny.tlog", data))
-    assert_nothing_found(report)
-    assert report["duration_s"] == 0.0
-    if data:
-        assert sum(report["skipped"].values()) >= 1
+    why = nothing_found(write(tmp_path, "tiny.tlog", data))
+    assert "found no message" in why, why
 
 
 # -- garbage between frames -----------------------------------------------------------------------
@@ -301,13 +297,15 @@ def test_cli_report_to_stdout_is_only_json(paper, tmp_path):
     assert report["messages"] == paper[3]["messages"]
 
 
-def test_cli_report_of_garbage_is_json_too(tmp_path):
+def test_cli_replay_of_garbage_is_an_error_not_a_clean_report(tmp_path):
+    """A file from which no GNSS sample could be read: one line saying what was found, a non-zero
+    exit, and no report that a user could read as "no alarm"."""
     data = np.random.default_rng(3).integers(0, 256, 5_000, dtype=np.uint8).tobytes()
     write(tmp_path, "junk.tlog", data)
     p = guard_cli("replay", "junk.tlog", "--report", "-", cwd=tmp_path)
-    assert p.returncode == 0, p.stderr
-    report = json.loads(p.stdout)
-    assert report["alarms"] == [] and report["skipped"]["garbage_bytes"] > 0
+    assert p.returncode == 1 and p.stdout == "", (p.returncode, p.stdout)
+    line, = p.stderr.strip().splitlines()
+    assert "junk.tlog: no GNSS sample could be read" in line and "garbage_bytes" in line, line
 
 
 def test_cli_report_and_plot_files(paper, tmp_path):
@@ -331,11 +329,11 @@ def test_cli_replay_of_another_system_id_says_how_to_read_it(paper, tmp_path):
         msg = enc.decode(bytearray(f.frame))
         out += struct.pack(">Q", f.prefix) + msg.pack(enc)
     path = write(tmp_path, "sys7.tlog", bytes(out))
-    p = guard_cli("replay", path, cwd=tmp_path)
-    assert p.returncode == 0, p.stderr
-    assert "0 GNSS samples" in p.stdout and "--system-id 0" in p.stderr, (p.stdout, p.stderr)
-    p = guard_cli("replay", path, "--report", "-", cwd=tmp_path)       # the report on stdout: said on stderr
-    assert json.loads(p.stdout)["gnss_samples"] == 0 and "--system-id 0" in p.stderr, p.stderr
+    for extra in ((), ("--report", "-")):
+        p = guard_cli("replay", path, *extra, cwd=tmp_path)
+        assert p.returncode == 1 and p.stdout == "", p.stdout
+        assert "no GNSS sample could be read" in p.stderr and "other_system" in p.stderr \
+            and "--system-id 0" in p.stderr, p.stderr
     for sid in ("7", "0"):
         p = guard_cli("replay", path, "--system-id", sid, "--report", "-", cwd=tmp_path)
         report = json.loads(p.stdout)
