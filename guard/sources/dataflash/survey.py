@@ -1,0 +1,116 @@
+"""What opening a DataFlash log finds, before any sample is read: what DFReader could not frame,
+the vehicle, the sensor instances and their rates, GPA's accuracies and the day the log was recorded.
+
+Units, as ArduPilot logs them: GPS Status (AP_GPS::GPS_Status, 3 = 3D fix and better), GWk/GMS GPS
+week and ms of week (older logs Week/TimeMS); GPA (written with the same TimeUS as its GPS): HAcc m
+and SAcc m/s, stored in cm ('C'). Rates in Hz, from boot time stamps in microseconds.
+"""
+
+from __future__ import annotations
+
+import datetime
+import re
+import statistics
+
+from guard.errors import SourceError
+from guard.sources.dataflash.index import HEAD, Log
+
+GPS_EPOCH = datetime.datetime(1980, 1, 6, tzinfo=datetime.timezone.utc)
+LEAP_SECONDS = 18
+FIRMWARE = re.compile(r"^(?:Ardu|APM:?)\s*(Rover|Copter|Plane|Sub|Heli|Blimp)", re.IGNORECASE)
+BUILD_GROUND = {1: True, 2: False, 3: False, 7: False, 12: False, 13: False}   # VER.BU: Rover, Copter, ...
+
+
+def _rate_hz(times: list[int]) -> float | None:
+    """A stream's rate from the median interval between its messages (robust to gaps and bursts)."""
+    steps = [b - a for a, b in zip(times, times[1:]) if b > a]
+    return round(1e6 / statistics.median(steps), 1) if steps else None
+
+
+def rate(log: Log, stream: tuple[str, list[int]]) -> float | None:
+    """The rate (Hz) of a stream (type name, offsets)."""
+    return _rate_hz(log.times(*stream))
+
+
+def account(index, skipped, notes: list[str]) -> None:
+    """Count what DFReader could not frame: a cut last message, garbage, a tail it did not read."""
+    size = index.data_len
+    spans, stop = 0, 0
+    for t, offs in enumerate(index.offsets):
+        if not offs or t not in index.formats:
+            continue
+        length = index.formats[t].len
+        spans += length * len(offs)
+        if offs[-1] + length > size:        # the last message, cut: only its first bytes are there
+            skipped["truncated"] += 1
+            spans -= offs[-1] + length - size
+        stop = max(stop, offs[-1] + length)
+    garbage = min(stop, size) - spans
+    if garbage > 0:
+        skipped["garbage_bytes"] += garbage
+    if index.formats.refused:
+        skipped["bad_format"] += index.formats.refused
+    tail = size - stop
+    if tail >= 3 and index.data_map[stop:stop + 2] == HEAD:
+        skipped["unread_bytes"] += tail
+        notes.append(f"reading stopped at byte {stop} of {size}: a message type no FMT declared "
+                     f"(corrupt data); the last {tail} bytes are not read")
+    elif tail >= 3:
+        skipped["garbage_bytes"] += tail
+
+
+def vehicle(log: Log, notes: list[str]) -> bool | None:
+    """Ground vehicle or not, from the firmware string (MSG) or the build type (VER.BU)."""
+    for _, text in log.texts("MSG", "Message"):
+        if m := FIRMWARE.match(text):
+            ground = m.group(1).lower() == "rover"
+            notes.append(f"autopilot: {text}")
+            return ground
+    if log.format("VER") is not None and "BU" in log.format("VER").colhash:
+        for _, build in log.rows("VER", ["BU"]):
+            return BUILD_GROUND.get(build)
+    return None
+
+
+def choose(log: Log, base: str, wanted: int | None, option: str, path: str,
+           notes: list[str]) -> tuple[int | None, tuple | None]:
+    """The instance wanted (default: the primary) and its stream (type name, offsets); a note on
+    the others."""
+    found = log.instances(base)
+    n = min(found, default=None) if wanted is None else wanted
+    if wanted is not None and wanted not in found:
+        have = ", ".join(str(i) for i in sorted(found)) or "none"
+        raise SourceError(f"{path}: no {base} {wanted} in this log ({base} instances: {have})")
+    if n is None:
+        notes.append(f"no {base} messages in this log")
+        return None, None
+    for i in sorted(set(found) - {n}):
+        notes.append(f"also {base} {i} at {rate(log, found[i])} Hz, not used: {option} {i} to replay it")
+    return n, found[n]
+
+
+def accuracies(log: Log, gnss: tuple | None, n: int | None) -> dict[int, tuple[float | None, float | None]]:
+    """GPA's horizontal and speed accuracy (m, m/s) by time stamp, for the GPS instance used, `n`
+    (ArduPilot writes GPS and GPA with one time stamp)."""
+    if gnss is None:
+        return {}
+    gpa = log.instances("GPA").get(n)
+    if gpa is None:
+        return {}
+    return {t: (h if h else None, s if s else None) for t, h, s in log.rows(gpa[0], ["HAcc", "SAcc"], gpa[1])}
+
+
+def gps_date(log: Log, gnss: tuple | None) -> datetime.date | None:
+    """The UTC day of the first GPS message with a fix (GWk/GMS; older logs Week/TimeMS)."""
+    if gnss is None:
+        return None
+    name, offs = gnss
+    cols = log.format(name).colhash
+    week, ms = ("GWk", "GMS") if "GWk" in cols else ("Week", "TimeMS") if "Week" in cols else (None, None)
+    if week is None:
+        return None
+    for _, status, wk, wms in log.rows(name, ["Status", week, ms], offs):
+        if status is not None and wk is not None and status >= 3 and 0 < wk < 10_000:
+            gps = GPS_EPOCH + datetime.timedelta(weeks=wk, milliseconds=wms)
+            return (gps - datetime.timedelta(seconds=LEAP_SECONDS)).date()
+    return None

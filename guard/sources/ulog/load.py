@@ -1,0 +1,75 @@
+"""pyulog's reading of a ULog file: the topics guard uses, and where pyulog stopped short.
+
+pyulog reads the whole file at once and prints what it finds wrong on stdout: that is caught and
+logged (the first lines as warnings, the rest counted). It stops silently at a cut message; the
+file it reads notices (its last read came up short) and says where.
+"""
+
+from __future__ import annotations
+
+import logging
+
+from pyulog import ULog
+from pyulog.exceptions import ULogException
+
+from guard.errors import SourceError
+from guard.sources.logs_common import printed
+
+log = logging.getLogger(__name__)
+
+MAGIC = b"ULog\x01\x12\x35"
+GPS_TOPICS = ("vehicle_gps_position", "sensor_gps")
+TOPICS = [*GPS_TOPICS, "sensor_combined", "vehicle_imu", "vehicle_magnetometer", "vehicle_attitude",
+          "vehicle_status", "estimator_innovation_test_ratios", "estimator_status"]
+
+
+def looks_like_ulog(head: bytes) -> bool:
+    """A ULog file starts with "ULog", 0x01 0x12 0x35 (then its version and start time)."""
+    return head[:7] == MAGIC
+
+
+class _TrackedFile:
+    """The file as pyulog reads it. `cut_at`: where its last non-empty read began if that read came up
+    short (pyulog stops there silently: a file cut inside a message, or corrupt bytes read as a long one)."""
+
+    def __init__(self, f):
+        self._f, self.cut_at = f, None
+
+    def read(self, n: int = -1) -> bytes:
+        at = self._f.tell()
+        data = self._f.read(n)
+        if data:
+            self.cut_at = at if 0 <= n and len(data) < n else None
+        return data
+
+    def seek(self, *args) -> int:
+        return self._f.seek(*args)
+
+    def tell(self) -> int:
+        return self._f.tell()
+
+    def close(self) -> None:
+        """pyulog closes its file when done; the reader closes its own."""
+
+
+def load(path: str) -> tuple[ULog, int | None]:
+    """pyulog's reading of the topics guard uses, and the offset where it stopped short (None: at the end)."""
+    try:
+        f = open(path, "rb")
+    except OSError as e:
+        raise SourceError(f"{path}: cannot open: {e.strerror}") from None
+    with f, printed() as said:
+        tracked = _TrackedFile(f)
+        try:
+            ulog = ULog(tracked, message_name_filter_list=TOPICS)
+        except ULogException as e:
+            raise SourceError(f"{path}: not a ULog file guard can read ({e})") from None
+        except OSError as e:
+            raise SourceError(f"{path}: cannot read: {e.strerror}") from None
+        except Exception as e:      # noqa: BLE001 - pyulog parses untrusted bytes: anything it raises means unreadable
+            raise SourceError(f"{path}: cannot be read as ULog ({type(e).__name__}: {e})") from None
+    for line in said.first:
+        log.warning("%s: pyulog: %s", path, line)
+    if said.lines > len(said.first):
+        log.warning("%s: pyulog: %d more lines like these", path, said.lines - len(said.first))
+    return ulog, tracked.cut_at
