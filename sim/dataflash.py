@@ -11,8 +11,9 @@ ArduPilot 4.x (`libraries/AP_GPS/LogStructure.h`, `AP_InertialSensor/LogStructur
 The simulator's MAVLink messages become, at their time `t_us` (boot time, microseconds):
 - HEARTBEAT (the first) -> MSG with the firmware string of its vehicle type ("ArduRover V4.5.0").
 - GPS_RAW_INT -> GPS (TimeUS, Status = fix_type, GWk/GMS, NSats, HDop, Lat/Lng degE7 as sent,
-  Alt cm, Spd m/s, GCrs deg, VZ m/s) and GPA (HAcc, VAcc cm, SAcc cm/s, SMS boot ms); GPS week and
-  milliseconds come from the wall time `TLOG_EPOCH_US + t_us` (unix), GPS = UTC + 18 leap seconds.
+  Alt cm, Spd m/s, GCrs deg, VZ m/s) and GPA (HAcc, VAcc cm, SAcc cm/s, 0 when unknown, as in
+  GPS_RAW_INT; SMS boot ms); GPS week and milliseconds come from the wall time
+  `TLOG_EPOCH_US + t_us` (unix), GPS = UTC + 18 leap seconds.
 - RAW_IMU -> MAG (MagX.. milligauss, as sent) then IMU (GyrX.. rad/s, AccX.. m/s^2 specific force,
   float32), body frame FRD. The MAG comes first so that a reader attaching the latest MAG to each
   IMU sample pairs the two taken together, as RAW_IMU does.
@@ -108,6 +109,16 @@ def _clamp(x: float, lo: int, hi: int) -> int:
     return max(lo, min(hi, int(round(x))))
 
 
+def _accuracy_cm(mm: int) -> int:
+    """A GPS_RAW_INT accuracy (mm or mm/s; 0: unknown) as GPA's HAcc/VAcc/SAcc (cm or cm/s; 0: unknown).
+
+    0 is "unknown" in both: ArduPilot's AP_GPS::Write_GPS starts hacc, vacc and sacc at 0 and logs
+    them so when the receiver gives none. A known accuracy under 5 mm is written as 1, not rounded
+    to 0, so that it does not read as unknown.
+    """
+    return 0 if mm <= 0 else _clamp(mm / 10.0, 1, 65535)
+
+
 class DataFlashWriter:
     """Writes the simulator's messages as an ArduPilot DataFlash log: send(t_us, msg), then close()."""
 
@@ -151,9 +162,9 @@ class DataFlashWriter:
         boot_ms = t_us // 1000
         delta = 0 if self.last_gps_ms is None else _clamp(boot_ms - self.last_gps_ms, 0, 65535)
         self.last_gps_ms = boot_ms
-        self._write(GPA, t_us, 0, _clamp(m.epv, 0, 65535), _clamp(m.h_acc / 10.0, 0, 65535),
-                    _clamp(m.v_acc / 10.0, 0, 65535), _clamp(m.vel_acc / 10.0, 0, 65535), 0.0, 0,
-                    boot_ms & 0xFFFFFFFF, delta, _clamp(m.alt_ellipsoid / 10.0, -2**31, 2**31 - 1), 0, 0)
+        self._write(GPA, t_us, 0, _clamp(m.epv, 0, 65535), _accuracy_cm(m.h_acc), _accuracy_cm(m.v_acc),
+                    _accuracy_cm(m.vel_acc), 0.0, 0, boot_ms & 0xFFFFFFFF, delta,
+                    _clamp(m.alt_ellipsoid / 10.0, -2**31, 2**31 - 1), 0, 0)
 
     def _imu(self, t_us: int, m) -> None:
         self._write(MAG, t_us, 0, m.xmag, m.ymag, m.zmag, 0, 0, 0, 0, 0, 0, 1, t_us & 0xFFFFFFFF)

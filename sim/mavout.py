@@ -49,14 +49,18 @@ class Encoder:
                                          10, mavlink.MAV_STATE_ACTIVE)
 
     def gps_raw_int(self, t_us: int, lat_deg: float, lon_deg: float, alt_m: float, vel_n: float, vel_e: float,
-                    h_acc_m: float, vel_acc_mps: float, fix_type: int = 3):
+                    h_acc_m: float | None, vel_acc_mps: float | None, fix_type: int = 3):
+        """GPS_RAW_INT. An accuracy of None (the receiver reports none) goes out as 0, MAVLink's "unknown";
+        v_acc is 1.5 h_acc, and unknown with it."""
         speed = math.hypot(vel_n, vel_e)
         cog = math.degrees(math.atan2(vel_e, vel_n)) % 360.0
+        h_acc = 0 if h_acc_m is None else int(round(h_acc_m * 1000))
+        v_acc = 0 if h_acc_m is None else int(round(h_acc_m * 1500))
+        vel_acc = 0 if vel_acc_mps is None else int(round(vel_acc_mps * 1000))
         return self.mav.gps_raw_int_encode(
             t_us, fix_type, int(round(lat_deg * 1e7)), int(round(lon_deg * 1e7)), int(round(alt_m * 1000)),
             100, 150, _u16(speed * 100), _u16(cog * 100) % 36000, 12,
-            alt_ellipsoid=int(round(alt_m * 1000)), h_acc=int(round(h_acc_m * 1000)),
-            v_acc=int(round(h_acc_m * 1500)), vel_acc=int(round(vel_acc_mps * 1000)), hdg_acc=0, yaw=0)
+            alt_ellipsoid=int(round(alt_m * 1000)), h_acc=h_acc, v_acc=v_acc, vel_acc=vel_acc, hdg_acc=0, yaw=0)
 
     def raw_imu(self, t_us: int, imu: ImuReading):
         acc = [_i16(a / G * 1000.0) for a in imu.acc_frd]          # mG

@@ -30,13 +30,25 @@ PHYSICS_STEP_US = 5000      # the vehicle is integrated at 200 Hz or finer
 CAN_TIME_OFFSET_US = 1_000_000  # DroneCAN time stamps: the bus had run 1 s before the drive (0 means "unknown")
 
 
-def period_us(hz: float) -> int:
-    return int(round(1e6 / hz))
+def sample_us(k: int, hz: float) -> int:
+    """Time of sample k of a sensor at hz: round(k * 1e6 / hz) microseconds."""
+    return int(round(k * 1e6 / hz))
+
+
+def first_sample_at(t_us: int, hz: float) -> int:
+    """Index of the first sample of a sensor at hz taken at or after t_us.
+
+    Not ceil(t_us / round(1e6 / hz)): where 1e6 / hz is not a whole number of microseconds (3, 6, 7
+    or 9 Hz) the rounded period drifts from the sample times and that ceiling comes out one too many.
+    """
+    k = max(0, math.floor(t_us * hz / 1e6) - 1)
+    while sample_us(k, hz) < t_us:
+        k += 1
+    return k
 
 
 def truth_record(scenario: Scenario, seed: int, sensors: Sensors, trajectory: dict) -> dict:
     """The ground truth written beside a tlog as NAME.truth.json (DESIGN.md, Contracts)."""
-    gnss_us = period_us(scenario.rates.gnss_hz)
 
     def clean(obj):     # JSON has no infinity: an attack without an end lasts "until the end"
         return {k: ("end" if isinstance(v, float) and math.isinf(v) else v) for k, v in obj.items()}
@@ -45,7 +57,8 @@ def truth_record(scenario: Scenario, seed: int, sensors: Sensors, trajectory: di
     for a in scenario.attacks:
         start_us = int(round(a.start_s * 1e6))
         attacks.append({"kind": a.kind, "sensor": a.sensor, "channel": a.channel, "magnitude": a.magnitude,
-                        "start_time_usec": start_us, "start_gnss_index": -(-start_us // gnss_us),
+                        "start_time_usec": start_us,
+                        "start_gnss_index": first_sample_at(start_us, scenario.rates.gnss_hz),
                         "duration_s": "end" if math.isinf(a.duration_s) else a.duration_s})
     return {
         "scenario": scenario.name,
@@ -92,7 +105,7 @@ class Simulation:
         t_us = 0
         while t_us <= end_us:
             t_s, s, out = t_us / 1e6, veh.s, []
-            due = [name for name in count if int(round(count[name] * 1e6 / rates[name])) == t_us]
+            due = [name for name in count if sample_us(count[name], rates[name]) == t_us]
             for name in due:        # in the order heartbeat, IMU, GNSS
                 count[name] += 1
                 if name == "heartbeat":
@@ -103,7 +116,7 @@ class Simulation:
                     out.append(self._gnss(t_us, s))
                     fed = (self.last_gnss[0], self.last_gnss[1], t_s)
             yield t_us, out
-            next_us = min(int(round(count[name] * 1e6 / rates[name])) for name in count)
+            next_us = min(sample_us(count[name], rates[name]) for name in count)
             substeps = max(1, -(-(next_us - t_us) // PHYSICS_STEP_US))
             dt = (next_us - t_us) / substeps / 1e6
             for _ in range(substeps):
@@ -133,9 +146,11 @@ class Simulation:
         for key, value in zip(self.trajectory, (t_us, tlat, tlon, s.e, s.n, s.psi, s.v)):
             self.trajectory[key].append(round(value, 9) if isinstance(value, float) else value)
         lost = any(a.kind == "dropout" and a.active(t_us / 1e6) for a in sc.attacks)
+        # the accuracies the receiver reports (None: it reports none); never 0, which means "unknown"
+        h_acc = max(n.gnss_h_acc_m, 0.001) if n.gnss_h_acc_reported else None
+        vel_acc = max(n.gnss_vel_white_mps, 0.01) if n.gnss_vel_acc_reported else None
         return self.encoder.gps_raw_int(t_us, 0.0 if lost else lat, 0.0 if lost else lon, alt, g.vel_n_mps,
-                                        g.vel_e_mps, n.gnss_h_acc_m, max(n.gnss_vel_white_mps, 0.01),
-                                        fix_type=1 if lost else 3)
+                                        g.vel_e_mps, h_acc, vel_acc, fix_type=1 if lost else 3)
 
     def truth(self) -> dict:
         return truth_record(self.scenario, self.seed, self.sensors, self.trajectory)
@@ -212,8 +227,9 @@ def _to_can(can, t_us: int, msg) -> None:
     t_us += CAN_TIME_OFFSET_US
     if name == "GPS_RAW_INT":
         speed, cog = msg.vel / 100.0, math.radians(msg.cog / 100.0)
+        h_acc = msg.h_acc / 1000.0 if msg.h_acc else None      # 0: unknown, sent as no covariance
         can.send_gnss(t_us, msg.lat / 1e7, msg.lon / 1e7, msg.alt / 1000.0, speed * math.cos(cog),
-                      speed * math.sin(cog), 0.0, msg.fix_type >= 3, msg.h_acc / 1000.0)
+                      speed * math.sin(cog), 0.0, msg.fix_type >= 3, h_acc)
     elif name == "RAW_IMU":
         g = 9.80665
         can.send_imu(t_us, (msg.xacc * g / 1000, msg.yacc * g / 1000, msg.zacc * g / 1000),

@@ -62,19 +62,40 @@ class Rates:
 
 @dataclass(frozen=True)
 class Noise:
-    """1-sigma sensor errors. Biases are drawn once per run from N(0, sigma^2)."""
+    """1-sigma sensor errors, and the fixed errors of this vehicle's sensors.
+
+    Biases are drawn once per run from N(0, sigma^2). Yaw angles are about the body z axis (FRD, z
+    down), positive clockwise seen from above, the sense in which the compass heading grows (north 0,
+    east 90): a sensor yawed by a reads R_z(a)^T v of a body vector v, (x cos a + y sin a,
+    -x sin a + y cos a, z). So with `mag_offset_deg` = a the magnetometer's x axis points a to the
+    right of the nose and its heading atan2(-m_y, m_x) reads the true heading + a; with
+    `imu_yaw_mount_deg` = a a forward acceleration f shows as (f cos a, -f sin a) on the
+    accelerometer's x and y. Scale-factor errors multiply the true specific force and rate (all three
+    axes) by 1 + scale before bias and noise are added.
+    """
 
     gnss_pos_white_m: float = 0.3
     gnss_pos_markov_m: float = 0.7        # first-order Gauss-Markov error: steady-state sigma
     gnss_pos_markov_tau_s: float = 60.0   # and correlation time
     gnss_vel_white_mps: float = 0.05
-    gnss_h_acc_m: float = 1.5             # what the receiver reports as its accuracy
+    gnss_h_acc_m: float = 0.8             # what the receiver reports as its accuracy: sqrt(0.3^2 + 0.7^2)
     gnss_delay_s: float = 0.0             # the receiver's latency: a fix shows the vehicle this long before its time stamp
     gyro_white_radps: float = 0.003
     gyro_bias_radps: float = 0.002
     accel_white_mps2: float = 0.05
     accel_bias_mps2: float = 0.05
     mag_white_gauss: float = 0.004
+    # this vehicle's own sensors (the defaults are the ideal ones); angles as in the docstring
+    mag_offset_deg: float = 0.0           # compass heading error, east positive: heading read = true + this
+    accel_scale: float = 0.0              # scale-factor error: 0.02 reads 2 % high (applied before bias, noise)
+    gyro_scale: float = 0.0               # likewise for the rate
+    imu_yaw_mount_deg: float = 0.0        # accelerometer and gyro (not the compass) mounted yawed by this
+    gnss_h_acc_reported: bool = True      # false: GPS_RAW_INT's h_acc and v_acc are 0 ("unknown")
+    gnss_vel_acc_reported: bool = True    # false: its vel_acc is 0 ("unknown"); true: gnss_vel_white_mps
+
+
+# noise keys that may be negative, with their limits (|value| <= limit); the others must be >= 0
+SIGNED_NOISE = {"mag_offset_deg": 30.0, "accel_scale": 0.2, "gyro_scale": 0.2, "imu_yaw_mount_deg": 30.0}
 
 
 @dataclass(frozen=True)
@@ -197,7 +218,13 @@ def parse(data: dict, where: str) -> Scenario:
     if not 0 <= r.heartbeat_hz <= 10:
         raise ScenarioError(f"{where}: rates.heartbeat_hz: must be within 0..10 Hz (0: none), got {r.heartbeat_hz}")
     for name, value in scenario.noise.__dict__.items():
-        if value < 0:
+        if isinstance(value, bool):
+            continue
+        if name in SIGNED_NOISE:
+            if abs(value) > SIGNED_NOISE[name]:
+                raise ScenarioError(f"{where}: noise.{name}: must be within -{SIGNED_NOISE[name]:g}.."
+                                    f"{SIGNED_NOISE[name]:g}, got {value}")
+        elif value < 0:
             raise ScenarioError(f"{where}: noise.{name}: must be >= 0, got {value}")
     for a in scenario.attacks:
         if a.start_s < 0 or a.duration_s <= 0:

@@ -6,6 +6,11 @@ accelerometer measures specific force (-g on z at rest), the gyro the body rate,
 and a constant bias. Magnetometer: the World Magnetic Model's field at the start, rotated into the
 body frame by the vehicle's heading, plus white noise.
 
+A vehicle's own sensors (sim.scenario.Noise): the IMU may be mounted yawed (`imu_yaw_mount_deg`) and
+read high or low (`accel_scale`, `gyro_scale`); the compass may be yawed (`mag_offset_deg`). The
+true vector in body axes is turned into the sensor's axes first, then scaled, then bias and noise
+are added: y = (1 + scale) R_z(a)^T x + b + w.
+
 Attacks add to the measurement, after the noise: y_alpha(k) = C x(k) + alpha(k) + omega(k).
 """
 
@@ -99,18 +104,34 @@ class Sensors:
     def imu(self, t_s: float, s: State) -> ImuReading:
         n = self.noise
         # specific force in FRD: forward accel, centripetal (left turn -> -y), -g on z
-        acc = np.array([s.accel, -s.omega * s.v, -G]) + self.accel_bias + self.rng_imu.normal(0, n.accel_white_mps2, 3)
-        gyro = np.array([0.0, 0.0, -s.omega]) + self.gyro_bias + self.rng_imu.normal(0, n.gyro_white_radps, 3)
+        acc = np.array([s.accel, -s.omega * s.v, -G])
+        gyro = np.array([0.0, 0.0, -s.omega])
+        # in the IMU's axes, scaled: y = (1 + scale) R_z(mount)^T x + b + w
+        mount = math.radians(n.imu_yaw_mount_deg)
+        acc = yawed(acc, mount) * (1.0 + n.accel_scale) + self.accel_bias
+        acc = acc + self.rng_imu.normal(0, n.accel_white_mps2, 3)
+        gyro = yawed(gyro, mount) * (1.0 + n.gyro_scale) + self.gyro_bias
+        gyro = gyro + self.rng_imu.normal(0, n.gyro_white_radps, 3)
         # field in body axes: rotate NED by the compass heading chi = pi/2 - psi
         chi = math.pi / 2 - s.psi
         fn, fe, fd = self.field_ned
         mag = np.array([fn * math.cos(chi) + fe * math.sin(chi), -fn * math.sin(chi) + fe * math.cos(chi), fd])
-        mag = mag + self.rng_mag.normal(0, n.mag_white_gauss, 3)
+        # a compass yawed by the offset reads the heading chi + offset
+        mag = yawed(mag, math.radians(n.mag_offset_deg)) + self.rng_mag.normal(0, n.mag_white_gauss, 3)
         for i, axis in enumerate("xyz"):
             acc[i] += self._offset(t_s, "accel", axis)
             gyro[i] += self._offset(t_s, "gyro", axis)
             mag[i] += self._offset(t_s, "mag", axis)
         return ImuReading(tuple(acc), tuple(gyro), tuple(mag))
+
+
+def yawed(v: np.ndarray, a_rad: float) -> np.ndarray:
+    """Body vector v (FRD) in the axes of a sensor yawed by a (clockwise seen from above, right-handed
+    about z down): R_z(a)^T v = (x cos a + y sin a, -x sin a + y cos a, z). v itself when a is 0."""
+    if a_rad == 0.0:
+        return v
+    c, s = math.cos(a_rad), math.sin(a_rad)
+    return np.array([c * v[0] + s * v[1], -s * v[0] + c * v[1], v[2]])
 
 
 def attack_value(a: Attack, t_s: float) -> float:

@@ -3,7 +3,7 @@
 Topics (field names, units and frames of PX4's msg/*.msg):
 - `sensor_gps` (the newer layout): latitude_deg/longitude_deg (float64, from GPS_RAW_INT's degE7),
   altitude_msl_m, vel_n_m_s/vel_e_m_s (float32, from its speed and course over ground), eph m and
-  s_variance_m_s m/s (1-sigma, from h_acc and vel_acc), hdop/vdop (its eph/epv DOP x 100),
+  s_variance_m_s m/s (1-sigma, from h_acc and vel_acc; -1 when unknown), hdop/vdop (its eph/epv DOP x 100),
   fix_type, time_utc_usec = sim.mavout.TLOG_EPOCH_US + time (the day a tlog of the same run says).
 - `sensor_combined`: gyro_rad rad/s and accelerometer_m_s2 m/s^2 (float32, from RAW_IMU's mrad/s and
   mG), body FRD; `vehicle_magnetometer`: magnetometer_ga gauss (from its mGauss), when it has one.
@@ -108,10 +108,19 @@ def gps_row(t_us: int, msg) -> tuple:
     speed, cog = (msg.vel / 100.0, math.radians(msg.cog / 100.0)) if vel_known else (0.0, 0.0)
     alt = msg.alt / 1000.0
     return (t_us, t_us, msg.lat * 1e-7, msg.lon * 1e-7, alt, getattr(msg, "alt_ellipsoid", msg.alt) / 1000.0,
-            TLOG_EPOCH_US + t_us, DEVICE_ID, getattr(msg, "vel_acc", 0) / 1000.0, 0.0,
-            getattr(msg, "h_acc", 0) / 1000.0, getattr(msg, "v_acc", 0) / 1000.0, msg.eph / 100.0, msg.epv / 100.0,
+            TLOG_EPOCH_US + t_us, DEVICE_ID, _accuracy(getattr(msg, "vel_acc", 0)), 0.0,
+            _accuracy(getattr(msg, "h_acc", 0)), _accuracy(getattr(msg, "v_acc", 0)), msg.eph / 100.0, msg.epv / 100.0,
             speed, speed * math.cos(cog), speed * math.sin(cog), 0.0, math.remainder(cog, math.tau), 0,
             math.nan, msg.fix_type, vel_known, msg.satellites_visible)
+
+
+def _accuracy(mm: int) -> float:
+    """A GPS_RAW_INT accuracy (mm or mm/s; 0: unknown) as sensor_gps's eph/epv/s_variance_m_s (m, m/s).
+
+    Unknown is -1 in sensor_gps, as PX4's DroneCAN GNSS driver (UavcanGnssBridge) writes eph, epv and
+    s_variance_m_s when the receiver sends no covariance (c_variance_rad, never known here, stays 0).
+    """
+    return mm / 1000.0 if mm > 0 else -1.0
 
 
 def with_syncs(data: bytes) -> bytes:

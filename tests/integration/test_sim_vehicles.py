@@ -1,0 +1,319 @@
+"""The simulator's vehicles whose sensors differ from the defaults (sim.scenario.Noise's per-vehicle keys).
+
+Each knob is compared with a run of the same scenario and seed without it. The knobs act on the
+sensor model only, after the vehicle has moved (the vehicle steers on GNSS, which none of the IMU
+knobs touch, and every error is drawn from the same seeded streams), so a run with a knob differs
+from the base run in exactly the fields the knob acts on, and by the amount it should.
+Angles: compass heading chi = atan2(-m_y, m_x) (clockwise from north, as guard.core.aiding.imu's
+`heading` takes it); `mag_offset_deg` > 0 turns it east. A sensor yawed by a reads (x cos a + y sin a,
+-x sin a + y cos a) of a body vector, so `imu_yaw_mount_deg` = a moves a forward acceleration f into
+y as -f sin a.
+"""
+
+import math
+import tomllib
+
+import numpy as np
+import pymap3d
+import pytest
+from pymavlink import mavutil
+from pyulog import ULog
+
+from guard.core.aiding.imu import heading
+from guard.sources import open_log
+from sim import scenario as scn
+from sim.run import Simulation, run
+from sim.scenario import SCENARIO_DIR, Noise, ScenarioError
+from sim.sensors import earth_field_ned_gauss
+
+SEED = 7
+# 30 s around a loop: speeds up from rest, changes speed and turns both ways
+BASE = {"name": "vehicles", "duration_s": 30.0, "start": {"heading_deg": 90.0},
+        "route": {"waypoints_m": [[0.0, 0.0, 4.0], [60.0, 0.0, 6.0], [80.0, 30.0, 3.0], [40.0, 60.0, 5.0],
+                                  [0.0, 40.0, 4.0]], "loop": True, "lookahead_m": 8.0},
+        "rates": {"imu_hz": 50.0, "gnss_hz": 10.0}}
+# no IMU noise or bias: readings are the true values (and the knobs' effect) to the message's integer
+NOISELESS = {"accel_white_mps2": 0.0, "accel_bias_mps2": 0.0, "gyro_white_radps": 0.0, "gyro_bias_radps": 0.0,
+             "mag_white_gauss": 0.0}
+NEW_KEYS = {"mag_offset_deg": 0.0, "accel_scale": 0.0, "gyro_scale": 0.0, "imu_yaw_mount_deg": 0.0,
+            "gnss_h_acc_reported": True, "gnss_vel_acc_reported": True}
+
+
+def scenario_with(**noise) -> scn.Scenario:
+    return scn.parse({**BASE, "noise": noise}, "vehicles.toml")
+
+
+def read_tlog(path) -> list:
+    conn = mavutil.mavlink_connection(str(path))
+    msgs = []
+    while (m := conn.recv_match()) is not None:
+        msgs.append(m)
+    conn.close()
+    return msgs
+
+
+def fields(m) -> dict:
+    return {k: v for k, v in m.to_dict().items() if k != "mavpackettype"}
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    """simulate(**noise) -> (messages, truth) of BASE with those noise keys, seed SEED; each run once."""
+    cache = {}
+
+    def simulate(**noise):
+        key = tuple(sorted(noise.items()))
+        if key not in cache:
+            path = tmp_path_factory.mktemp("vehicles") / "run.tlog"
+            truth = run(scenario_with(**noise), SEED, tlog=str(path))
+            cache[key] = (read_tlog(path), truth)
+        return cache[key]
+    return simulate
+
+
+def raw_imu(msgs, *names) -> np.ndarray:
+    """Columns of RAW_IMU (integers as sent: mG, mrad/s, mGauss)."""
+    return np.array([[getattr(m, n) for n in names] for m in msgs if m.get_type() == "RAW_IMU"], dtype=float)
+
+
+def changed_fields(base, other) -> set[tuple[str, str]]:
+    """(message, field) pairs that differ between two runs with the same messages at the same times."""
+    assert [(m.get_type(), getattr(m, "time_usec", None)) for m in base] == \
+        [(m.get_type(), getattr(m, "time_usec", None)) for m in other]
+    changed = set()
+    for a, b in zip(base, other):
+        fa, fb = fields(a), fields(b)
+        changed |= {(a.get_type(), k) for k in fa if fa[k] != fb[k]}
+    return changed
+
+
+def compass_deg(msgs) -> np.ndarray:
+    """Compass heading chi = atan2(-m_y, m_x) of every RAW_IMU (the vehicle is level), degrees."""
+    mxy = raw_imu(msgs, "xmag", "ymag")
+    return np.degrees(np.arctan2(-mxy[:, 1], mxy[:, 0]))
+
+
+def wrap_deg(x):
+    return (np.asarray(x) + 180.0) % 360.0 - 180.0
+
+
+# -- each knob changes what it should and nothing else ---------------------------------------------
+
+@pytest.mark.parametrize("knob, value, expected", [
+    ("mag_offset_deg", 5.0, {("RAW_IMU", "xmag"), ("RAW_IMU", "ymag")}),
+    ("accel_scale", 0.1, {("RAW_IMU", "xacc"), ("RAW_IMU", "yacc"), ("RAW_IMU", "zacc")}),
+    ("gyro_scale", 0.1, {("RAW_IMU", "zgyro")}),            # a level vehicle turns about z only
+    ("imu_yaw_mount_deg", 10.0, {("RAW_IMU", "xacc"), ("RAW_IMU", "yacc")}),
+    ("gnss_vel_acc_reported", False, {("GPS_RAW_INT", "vel_acc")}),
+    ("gnss_h_acc_reported", False, {("GPS_RAW_INT", "h_acc"), ("GPS_RAW_INT", "v_acc")}),
+])
+def test_a_knob_changes_only_its_fields(runs, knob, value, expected):
+    base, _ = runs()
+    other, truth = runs(**{knob: value})
+    assert changed_fields(base, other) == expected
+    assert truth["noise"][knob] == value                     # the truth file lists it
+
+
+def test_defaults_are_byte_identical_to_a_scenario_without_the_keys(tmp_path):
+    """A shipped scenario, and a copy of it with every new key written out at its default."""
+    text = (SCENARIO_DIR / "paper.toml").read_text()
+    assert not set(NEW_KEYS) & set(tomllib.loads(text).get("noise", {}))
+    lines = "".join(f"{k} = {str(v).lower()}\n" for k, v in NEW_KEYS.items())
+    explicit = text.replace("[noise]\n", "[noise]\n" + lines) if "[noise]\n" in text else text + "\n[noise]\n" + lines
+    (tmp_path / "without.toml").write_text(text)
+    (tmp_path / "with.toml").write_text(explicit)
+    with_keys = scn.load(str(tmp_path / "with.toml"))
+    assert {k: getattr(with_keys.noise, k) for k in NEW_KEYS} == NEW_KEYS
+    assert with_keys == scn.load(str(tmp_path / "without.toml"))
+    a, b = tmp_path / "without.tlog", tmp_path / "with.tlog"
+    run(scn.load(str(tmp_path / "without.toml")), 2, tlog=str(a))
+    truth = run(with_keys, 2, tlog=str(b))
+    assert a.read_bytes() == b.read_bytes()
+    assert {k: truth["noise"][k] for k in NEW_KEYS} == NEW_KEYS
+
+
+def test_defaults_are_the_ideal_sensor():
+    n = Noise()
+    assert (n.mag_offset_deg, n.accel_scale, n.gyro_scale, n.imu_yaw_mount_deg) == (0.0, 0.0, 0.0, 0.0)
+    assert n.gnss_h_acc_reported is True and n.gnss_vel_acc_reported is True
+
+
+# -- the magnetometer ---------------------------------------------------------------------------------
+
+def test_mag_offset_turns_the_compass_heading_east(runs):
+    """+5 deg: the heading from RAW_IMU's field is 5 deg east of the one without (and of the truth)."""
+    base, truth = runs()
+    other, _ = runs(mag_offset_deg=5.0)
+    diff = wrap_deg(compass_deg(other) - compass_deg(base))
+    assert diff.mean() == pytest.approx(5.0, abs=0.1)         # noise (~1 deg a sample) averages out
+    assert np.percentile(np.abs(diff - 5.0), 95) < 2.5
+    # the same against the truth, through guard's own heading (ENU yaw, counter-clockwise): 5 deg less
+    st = scenario_with().start
+    fn, fe, _ = earth_field_ned_gauss(st.lat_deg, st.lon_deg, st.alt_m, st.year)
+    declination = math.atan2(fe, fn)
+    imu_t = [m.time_usec for m in other if m.get_type() == "RAW_IMU"]
+    at_gnss = [imu_t.index(t) for t in truth["trajectory"]["t_usec"]]       # IMU at 50 Hz, GNSS at 10 Hz
+    for msgs, offset in ((base, 0.0), (other, 5.0)):
+        mxy = raw_imu(msgs, "xmag", "ymag")[at_gnss]
+        yaw = np.array([heading(mx, my, declination) for mx, my in mxy])
+        error = wrap_deg(np.degrees(yaw - np.array(truth["trajectory"]["yaw_rad"])))
+        assert error.mean() == pytest.approx(-offset, abs=0.3)
+
+
+def test_mag_offset_noiseless_is_a_rotation_of_the_field(runs):
+    base, _ = runs(**NOISELESS)
+    other, _ = runs(**NOISELESS, mag_offset_deg=-20.0)
+    diff = wrap_deg(compass_deg(other) - compass_deg(base))
+    assert np.abs(diff + 20.0).max() < 0.6                      # 1 mGauss in ~200 mGauss horizontal
+    b, o = raw_imu(base, "xmag", "ymag", "zmag"), raw_imu(other, "xmag", "ymag", "zmag")
+    assert np.abs(np.hypot(o[:, 0], o[:, 1]) - np.hypot(b[:, 0], b[:, 1])).max() <= 1.5
+    assert np.array_equal(o[:, 2], b[:, 2])
+
+
+# -- the IMU --------------------------------------------------------------------------------------------
+
+def test_accel_scale_multiplies_the_specific_force(runs):
+    base, _ = runs(**NOISELESS)
+    other, _ = runs(**NOISELESS, accel_scale=0.1)
+    b, o = raw_imu(base, "xacc", "yacc", "zacc"), raw_imu(other, "xacc", "yacc", "zacc")
+    accelerating = np.abs(b[:, 0]) >= 30                      # mG: speeding up and slowing down
+    assert accelerating.sum() > 100
+    assert np.abs(o[accelerating, 0] - 1.1 * b[accelerating, 0]).max() <= 1.1     # two roundings to 1 mG
+    assert np.abs(o - 1.1 * b).max() <= 1.1
+    assert set(o[:, 2]) == {-1100.0}                           # -g reads 10 % high too
+
+
+def test_imu_scales_act_before_bias_and_noise(runs):
+    """With large biases and noise on, the scaled run differs from the base by scale * the true value."""
+    noisy = {"accel_bias_mps2": 2.0, "gyro_bias_radps": 0.2}
+    truth_acc = raw_imu(runs(**NOISELESS)[0], "xacc", "yacc", "zacc")
+    truth_rate = raw_imu(runs(**NOISELESS)[0], "zgyro")[:, 0]
+    b, o = runs(**noisy)[0], runs(**noisy, accel_scale=-0.1, gyro_scale=0.2)[0]
+    acc_diff = raw_imu(o, "xacc", "yacc", "zacc") - raw_imu(b, "xacc", "yacc", "zacc")
+    assert np.abs(acc_diff - (-0.1) * truth_acc).max() <= 1.2
+    rate_diff = raw_imu(o, "zgyro")[:, 0] - raw_imu(b, "zgyro")[:, 0]
+    assert np.abs(rate_diff - 0.2 * truth_rate).max() <= 1.2
+    assert np.abs(truth_rate).max() > 300                      # mrad/s: it does turn
+
+
+def test_gyro_scale_multiplies_the_rate(runs):
+    base, _ = runs(**NOISELESS)
+    other, _ = runs(**NOISELESS, gyro_scale=-0.05)
+    b, o = raw_imu(base, "zgyro")[:, 0], raw_imu(other, "zgyro")[:, 0]
+    turning = np.abs(b) >= 100
+    assert turning.sum() > 100
+    assert np.abs(o - 0.95 * b).max() <= 1.0
+
+
+def test_imu_mount_rotates_x_and_y(runs):
+    """Mounted yawed +10 deg: (x, y) reads (x cos a + y sin a, -x sin a + y cos a); forward acceleration
+    moves into -y by sin(a); z, the gyro and the compass do not change."""
+    a = math.radians(10.0)
+    base, _ = runs(**NOISELESS)
+    other, _ = runs(**NOISELESS, imu_yaw_mount_deg=10.0)
+    names = ("xacc", "yacc", "zacc", "zgyro", "xmag", "ymag", "zmag")
+    b, o = raw_imu(base, *names), raw_imu(other, *names)
+    x, y = b[:, 0], b[:, 1]
+    assert np.abs(o[:, 0] - (x * math.cos(a) + y * math.sin(a))).max() <= 1.1
+    assert np.abs(o[:, 1] - (-x * math.sin(a) + y * math.cos(a))).max() <= 1.1
+    straight = (np.abs(y) <= 1) & (np.abs(x) >= 30)          # speeding up or slowing down, not turning
+    assert straight.sum() > 50
+    ratio = o[straight, 1] / x[straight]
+    assert ratio.mean() == pytest.approx(-math.sin(a), abs=0.01)
+    assert np.array_equal(o[:, 2:], b[:, 2:])
+
+
+# -- GNSS accuracies ------------------------------------------------------------------------------------
+
+def test_reported_accuracies_follow_the_noise_or_are_zero(runs):
+    gps = [m for m in runs()[0] if m.get_type() == "GPS_RAW_INT"]
+    assert {(m.h_acc, m.v_acc, m.vel_acc) for m in gps} == {(800, 1200, 50)}       # gnss_h_acc_m, 0.05 m/s
+    gps = [m for m in runs(gnss_vel_white_mps=0.2)[0] if m.get_type() == "GPS_RAW_INT"]
+    assert {m.vel_acc for m in gps} == {200}                  # vel_acc follows gnss_vel_white_mps
+    gps = [m for m in runs(gnss_vel_acc_reported=False)[0] if m.get_type() == "GPS_RAW_INT"]
+    assert {(m.h_acc, m.v_acc, m.vel_acc) for m in gps} == {(800, 1200, 0)}
+    gps = [m for m in runs(gnss_h_acc_reported=False)[0] if m.get_type() == "GPS_RAW_INT"]
+    assert {(m.h_acc, m.v_acc, m.vel_acc) for m in gps} == {(0, 0, 50)}
+
+
+def test_unknown_accuracies_in_dataflash_and_ulog(tmp_path):
+    """Not reported: GPA's HAcc/VAcc/SAcc 0 (as ArduPilot logs it), sensor_gps's eph/epv/s_variance -1
+    (as PX4's DroneCAN driver writes it); guard reads both, and the tlog, as unknown."""
+    sc = scn.parse({**BASE, "duration_s": 3.0, "noise": {"gnss_h_acc_reported": False,
+                                                         "gnss_vel_acc_reported": False}}, "t.toml")
+    paths = {k: str(tmp_path / f"run.{k}") for k in ("tlog", "bin", "ulg")}
+    run(sc, SEED, **paths)
+    conn = mavutil.mavlink_connection(paths["bin"])
+    gpa = []
+    while (m := conn.recv_match(type="GPA")) is not None:
+        gpa.append((m.HAcc, m.VAcc, m.SAcc))
+    conn.close()
+    assert len(gpa) == 31 and set(gpa) == {(0, 0, 0)}
+    gps = ULog(paths["ulg"], ["sensor_gps"]).get_dataset("sensor_gps").data
+    for key in ("eph", "epv", "s_variance_m_s"):
+        assert set(gps[key].tolist()) == {-1.0}
+    for path in paths.values():
+        with open_log(path) as reader:
+            fixes = [s for s in reader.samples() if hasattr(s, "h_acc_m")]
+        assert len(fixes) == 31 and {(f.h_acc_m, f.vel_acc_mps) for f in fixes} == {(None, None)}, path
+
+
+# -- rates ----------------------------------------------------------------------------------------------
+
+def test_imu_400_hz_gnss_1_hz_over_30_s(tmp_path):
+    sc = scn.parse({**BASE, "rates": {"imu_hz": 400.0, "gnss_hz": 1.0},
+                    "attack": [{"kind": "step", "sensor": "gnss_pos", "channel": "north", "magnitude": 10.0,
+                                "start_s": 12.5}]}, "t.toml")
+    truth = run(sc, SEED, tlog=str(tmp_path / "r.tlog"))
+    msgs = read_tlog(tmp_path / "r.tlog")
+    imu = [m.time_usec for m in msgs if m.get_type() == "RAW_IMU"]
+    gps = [m for m in msgs if m.get_type() == "GPS_RAW_INT"]
+    assert imu == [2500 * k for k in range(30 * 400 + 1)]
+    assert [m.time_usec for m in gps] == [1_000_000 * k for k in range(31)]
+    assert sum(m.get_type() == "HEARTBEAT" for m in msgs) == 31
+    assert truth["attacks"][0]["start_gnss_index"] == 13      # the first 1 Hz sample at or after 12.5 s
+    st = sc.start
+    _, north, _ = pymap3d.geodetic2enu(np.array([m.lat for m in gps]) * 1e-7, np.array([m.lon for m in gps]) * 1e-7,
+                                       st.alt_m, st.lat_deg, st.lon_deg, st.alt_m)
+    error = np.asarray(north) - np.array(truth["trajectory"]["north_m"])
+    assert error[13] - error[12] > 5.0 and abs(error[12] - error[11]) < 3.0
+
+
+@pytest.mark.parametrize("imu_hz, gnss_hz", [(10.0, 1.0), (25.0, 2.0), (30.0, 3.0), (50.0, 4.0), (70.0, 5.0),
+                                             (100.0, 6.0), (150.0, 7.0), (200.0, 8.0), (333.0, 9.0),
+                                             (400.0, 10.0)])
+def test_rates_and_attack_index(imu_hz, gnss_hz):
+    """Every sensor gives duration * rate + 1 samples at round(k * 1e6 / rate) us, and the truth's
+    start_gnss_index is the first GNSS sample the attack reaches (also where 1e6 / rate is not whole)."""
+    duration_s, start_s = 3.0, 1.0
+    sc = scn.parse({**BASE, "duration_s": duration_s, "rates": {"imu_hz": imu_hz, "gnss_hz": gnss_hz},
+                    "attack": [{"kind": "step", "sensor": "gnss_pos", "channel": "east", "magnitude": 10.0,
+                                "start_s": start_s}]}, "t.toml")
+    sim = Simulation(sc, SEED)
+    times = {"RAW_IMU": [], "GPS_RAW_INT": []}
+    for t_us, messages in sim.ticks():
+        for m in messages:
+            times.get(m.get_type(), []).append(t_us)
+    for name, hz in (("RAW_IMU", imu_hz), ("GPS_RAW_INT", gnss_hz)):
+        n = int(round(duration_s * hz)) + 1
+        assert times[name] == [int(round(k * 1e6 / hz)) for k in range(n)], name
+    first = next(k for k, t in enumerate(times["GPS_RAW_INT"]) if t / 1e6 >= start_s)
+    assert sim.truth()["attacks"][0]["start_gnss_index"] == first
+
+
+# -- validation -----------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("key, value", [
+    ("mag_offset_deg", 30.5), ("mag_offset_deg", -31.0), ("accel_scale", 0.25), ("accel_scale", -0.21),
+    ("gyro_scale", 0.3), ("gyro_scale", -1.0), ("imu_yaw_mount_deg", 45.0), ("imu_yaw_mount_deg", -30.01),
+    ("mag_offset_deg", "5"), ("accel_scale", True), ("gnss_vel_acc_reported", 0), ("gnss_h_acc_reported", "no"),
+])
+def test_bad_value_is_named(key, value):
+    with pytest.raises(ScenarioError, match=key):
+        scn.parse({**BASE, "noise": {key: value}}, "t.toml")
+
+
+@pytest.mark.parametrize("key, value", [("mag_offset_deg", -30), ("accel_scale", 0.2), ("gyro_scale", -0.2),
+                                        ("imu_yaw_mount_deg", 30.0), ("gnss_h_acc_reported", False)])
+def test_limits_are_inclusive_and_signs_allowed(key, value):
+    assert getattr(scn.parse({**BASE, "noise": {key: value}}, "t.toml").noise, key) == value
