@@ -110,10 +110,20 @@ def _check(cfg: Config, where: str) -> None:
         "filter.gnss_delay_s": (flt.gnss_delay_s > 1.0, "must be at most 1 s (receivers lag 0.05 to 0.25 s)"),
         "monitor.vehicle": (cfg.monitor.vehicle not in ("auto", "ground", "air"),
                             "must be \"auto\", \"ground\" or \"air\""),
+        # values that would switch detection off, or flood the disk
+        "monitor.max_gap_s": (cfg.monitor.max_gap_s < 1.0, "must be >= 1 s (below, every gap restarts the filter)"),
+        "monitor.readmit_sigma": (cfg.monitor.readmit_sigma < 1.0, "must be >= 1 (below, no sensor is ever re-admitted)"),
+        "monitor.max_coast_m": (cfg.monitor.max_coast_m < 1.0, "must be >= 1 m"),
+        "monitor.min_imu_hz": (cfg.monitor.min_imu_hz > 100.0, "must be at most 100 Hz"),
+        "filter.q_pos_m": (flt.q_pos_m <= 0, "must be > 0 (at 0 the estimate cannot follow the GNSS's slow error)"),
+        "filter.gnss_pos_acc_fraction": (not 0 < flt.gnss_pos_acc_fraction <= 1, "must be in (0, 1]"),
+        "filter.q_accel_no_imu_mps2": (flt.q_accel_no_imu_mps2 <= 0, "must be > 0"),
+        "log.rotate_mb": (0 < cfg.log.rotate_mb < 1.0, "must be 0 (never) or >= 1 MB"),
     }
     for f in fields(FilterConfig):
         value = getattr(flt, f.name)
-        if f.name.endswith(("_sigma_m", "_sigma_mps", "_sigma_rad", "_sigma_radps", "_sigma_mps2")) and value <= 0:
+        if f.name.endswith(("_sigma_m", "_sigma_mps", "_sigma_rad", "_sigma_radps", "_sigma_mps2", "_unreported_m",
+                            "_unreported_mps")) and value <= 0:
             problems[f"filter.{f.name}"] = (True, "must be > 0")
     for key, (bad, why) in problems.items():
         if bad:

@@ -1,4 +1,4 @@
-"""The paper's extended Kalman filter: 11 states, INS/GNSS loosely coupled, multi-rate.
+"""The paper's extended Kalman filter (11 states) and the magnetometer's offset: INS/GNSS loosely coupled, multi-rate.
 
 State (paper, Sec. III-B), indices in brackets:
     x[0] x, x[1] y      position east, north (m, local tangent plane)
@@ -7,6 +7,11 @@ State (paper, Sec. III-B), indices in brackets:
     x[5] theta_dot      yaw rate (rad/s)
     x[6] a_x, x[7] a_y  body acceleration (specific force), forward and left (m/s^2)
     x[8] b_theta_dot, x[9] b_ax, x[10] b_ay   gyro and accelerometer biases
+    x[11] b_psi         the magnetometer's heading offset (rad) [beyond the paper]: what the World
+                        Magnetic Model's declination, the compass's installation and its hard iron leave,
+                        learnt as autopilots learn their compass offsets. A slow random walk
+                        (q_mag_offset_rad): a few degrees are learnt in the first minute of moving (the
+                        GNSS course and the turns witness the heading), a fast change is not.
 
 Transition with sampling time T (the paper's discrete model):
     x(k+1)  = x + T (v_x cos theta - v_y sin theta)
@@ -21,7 +26,7 @@ that reading would be integrated into a sideways velocity. On a straight line bo
 
 Measurements (linear in the state but for GNSS velocity), each in its own file of `guard.core.aiding`:
     GNSS position  (x, y);  GNSS velocity (v_e, v_n) = R(theta) (v_x, v_y)   [beyond the paper]
-    heading        theta;  gyro theta_dot + b;  accelerometer (a_x + b_ax, a_y + b_ay)
+    heading        theta + b_psi;  gyro theta_dot + b;  accelerometer (a_x + b_ax, a_y + b_ay)
     ground vehicles: v_y = 0, a pseudo-measurement (a wheel does not slide sideways) [beyond the paper]
 
 The sideways constraint (`lateral_sigma_mps`) ties the course over ground to the heading. Without it
@@ -45,29 +50,39 @@ from dataclasses import dataclass
 
 import numpy as np
 
-N_STATES = 11
-X, Y, TH, VX, VY, W, AX, AY, BW, BAX, BAY = range(N_STATES)
+MAX_STEP_S = 0.1       # the longest step of the discrete model
+N_STATES = 12
+X, Y, TH, VX, VY, W, AX, AY, BW, BAX, BAY, BM = range(N_STATES)
 
 
 @dataclass(frozen=True)
 class FilterConfig:
     """Noise model of the filter (1-sigma). Process noise is given per second (random-walk rates)."""
 
-    gnss_pos_sigma_m: float = 0.35
-    gnss_vel_sigma_mps: float = 0.06
-    heading_sigma_rad: float = 0.03
-    heading_lag_s: float = 0.1        # timing uncertainty of the magnetometer: adds (yaw rate * lag)^2 to R
+    gnss_pos_sigma_m: float = 0.35    # the floor of a fix's position noise (guard.core.aiding.gnss)
+    gnss_pos_acc_fraction: float = 0.4   # the share of the receiver's h_acc taken as its epoch-to-epoch noise
+    gnss_pos_unreported_m: float = 0.5   # a receiver that reports no accuracy
+    gnss_vel_sigma_mps: float = 0.06  # the floor of a fix's velocity noise
+    gnss_vel_unreported_mps: float = 0.3   # a receiver that reports no speed accuracy
+    heading_sigma_rad: float = 0.03   # the magnetometer heading's floor (see gyro_sigma_radps)
+    heading_lag_s: float = 0.1        # how late the magnetometer and the attitude that levels the IMU may be:
+                                      # adds (yaw rate * lag)^2 to the heading's R, and what a tilt that late
+                                      # leaks (tan(I) and g times the roll and pitch rate * lag) to heading and accel
     gnss_delay_s: float = 0.0         # the receiver's latency: a fix is compared with the state this long before it
-    gyro_sigma_radps: float = 0.01
-    accel_sigma_mps2: float = 0.15
+    gyro_sigma_radps: float = 0.01    # the floor: the gyro's own noise, measured from its samples, when larger
+    accel_sigma_mps2: float = 0.15    # likewise (vibration: 0.25 to 0.66 m/s^2 in two real copter flights at 25 Hz)
     lateral_sigma_mps: float = 0.1    # ground vehicles: sideways body velocity (skid), the v_y = 0 pseudo-measurement
     q_pos_m: float = 0.1              # position random walk, m/sqrt(s): covers correlated GNSS error
     q_heading_rad: float = 0.005
     q_vel_mps: float = 0.05
     q_yaw_rate_radps: float = 0.5     # yaw acceleration
     q_accel_mps2: float = 2.0         # jerk
+    q_accel_no_imu_mps2: float = 3.0  # jerk when no IMU measures the acceleration (GNSS alone): a vehicle's own
     q_gyro_bias_radps: float = 1e-4
     q_accel_bias_mps2: float = 1e-3
+    q_accel_bias_air_mps2: float = 0.01   # a vehicle that tilts: its levelled accelerometers carry the attitude's
+                                      # error times g (1 degree: 0.17 m/s^2), which moves as it manoeuvres
+    q_mag_offset_rad: float = 3e-4    # the magnetometer's heading offset, rad/sqrt(s): 0.4 degree in 10 minutes
     use_gnss_velocity: bool = True
     centripetal: bool = True          # c in the transition; False is the paper's model as written
     p0_pos_m: float = 2.0
@@ -77,29 +92,39 @@ class FilterConfig:
     p0_accel_mps2: float = 1.0
     p0_gyro_bias_radps: float = 0.01
     p0_accel_bias_mps2: float = 0.2
+    p0_mag_offset_rad: float = 0.1    # a compass a few degrees off (0.1 rad = 5.7 degrees, 1 sigma)
+    mag_offset_rad: float = 0.0       # the compass's offset, where known (guard tune): the learnt b_psi starts here
 
 
 class NavEKF:
-    """x: state (11,), P: covariance (11, 11). predict() then innovation() then fuse()."""
+    """x: state (12,), P: covariance (12, 12). predict() then innovation() then fuse()."""
 
     def __init__(self, cfg: FilterConfig, x0: np.ndarray):
         self.cfg = cfg
         self.x = np.asarray(x0, dtype=float).copy()
         self.P = np.diag(np.square([cfg.p0_pos_m, cfg.p0_pos_m, cfg.p0_heading_rad, cfg.p0_vel_mps, cfg.p0_vel_mps,
                                     cfg.p0_yaw_rate_radps, cfg.p0_accel_mps2, cfg.p0_accel_mps2,
-                                    cfg.p0_gyro_bias_radps, cfg.p0_accel_bias_mps2, cfg.p0_accel_bias_mps2]))
+                                    cfg.p0_gyro_bias_radps, cfg.p0_accel_bias_mps2, cfg.p0_accel_bias_mps2,
+                                    cfg.p0_mag_offset_rad]))
         self.q = np.square([cfg.q_pos_m, cfg.q_pos_m, cfg.q_heading_rad, cfg.q_vel_mps, cfg.q_vel_mps,
                             cfg.q_yaw_rate_radps, cfg.q_accel_mps2, cfg.q_accel_mps2, cfg.q_gyro_bias_radps,
-                            cfg.q_accel_bias_mps2, cfg.q_accel_bias_mps2])
+                            cfg.q_accel_bias_mps2, cfg.q_accel_bias_mps2, cfg.q_mag_offset_rad])
         self.c = 1.0 if cfg.centripetal else 0.0
         self._F = np.eye(N_STATES)
         self._I = np.eye(N_STATES)
         self._diag = np.diag_indices(N_STATES)
 
     def predict(self, T: float) -> None:
-        """Propagate by T seconds: x = f(x), P = F P Fᵀ + Q."""
+        """Propagate by T seconds: x = f(x), P = F P Fᵀ + Q, in steps of at most MAX_STEP_S (the
+        discrete model is first order: over a long step, a 1 Hz stream's, the position would not
+        see the acceleration)."""
         if T <= 0.0:
             return
+        n = math.ceil(T / MAX_STEP_S - 1e-9)
+        for _ in range(n):
+            self._step(T / n)
+
+    def _step(self, T: float) -> None:
         x, c, F = self.x, self.c, self._F
         th, vx, vy, w, ax, ay = x[TH:BW].tolist()
         cs, sn = math.cos(th), math.sin(th)
@@ -118,6 +143,35 @@ class NavEKF:
         # P = F P Fᵀ + Q,  Q = q T
         self.P = F @ self.P @ F.T
         self.P[self._diag] += self.q * T
+
+    def set_heading(self, theta: float) -> None:
+        """Start the heading over at theta (the magnetometer's first reading), the ground velocity kept:
+        v_body = R(theta)^T v_en; the heading's uncertainty back to its initial one, uncorrelated."""
+        x, c = self.x, self.cfg
+        cs, sn = math.cos(x[TH]), math.sin(x[TH])
+        ve, vn = x[VX] * cs - x[VY] * sn, x[VX] * sn + x[VY] * cs
+        cs, sn = math.cos(theta), math.sin(theta)
+        x[TH], x[VX], x[VY] = theta, cs * ve + sn * vn, -sn * ve + cs * vn
+        self.P[TH, :] = self.P[:, TH] = 0.0
+        self.P[TH, TH] = c.p0_heading_rad ** 2
+
+    def tilting(self, air: bool) -> None:
+        """An air vehicle's accelerometer biases follow q_accel_bias_air_mps2, a ground vehicle's
+        q_accel_bias_mps2 (see FilterConfig)."""
+        q = self.cfg.q_accel_bias_air_mps2 if air else self.cfg.q_accel_bias_mps2
+        self.q[BAX] = self.q[BAY] = q * q
+
+    def hold_heading(self) -> None:
+        """GNSS alone (no IMU fast enough to integrate): the heading, yaw rate and IMU biases are held
+        where they are, without noise, so that the model is the linear one of a body velocity and
+        acceleration in a fixed frame (a random walk in acceleration)."""
+        for i in (TH, W, BW, BAX, BAY, BM):
+            if i != TH:
+                self.x[i] = 0.0
+            self.P[i, :] = self.P[:, i] = 0.0
+            self.q[i] = 0.0
+        # nothing measures the acceleration now: its random walk is the vehicle's own manoeuvres
+        self.q[AX] = self.q[AY] = self.cfg.q_accel_no_imu_mps2 ** 2
 
     def innovation(self, z: np.ndarray, hx: np.ndarray, H: np.ndarray, R: np.ndarray,
                    angle_rows: tuple[int, ...] = ()) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

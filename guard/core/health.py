@@ -27,16 +27,27 @@ class Health:
         self.agreed: Counter[Sensor] = Counter()    # excluded sensor -> consistent samples since then
         self.with_receiver: set[Sensor] = set()     # excluded with the receiver, not by an alarm of its own
         self.accel_ref: float | None = None         # a laterally biased accelerometer's bias before the attack
+        self.latched: set[Sensor] = set()           # fused again without being cleared (re-anchored): the alarm stands
+        self.offsets: dict[Sensor, float] = {}      # the size of each excluded sensor's alarm (its estimated shift)
 
-    def exclude(self, named: Sensor, t_us: int) -> None:
-        """An alarm on `named`: it goes, and with a GNSS sensor the rest of its receiver (a spoofer
-        controls both; the one that still agrees is re-admitted after readmit_s)."""
+    def exclude(self, named: Sensor, t_us: int, offset: float | None = None) -> None:
+        """An alarm on `named` (of size `offset`, if known): it goes, and with a GNSS sensor the rest of
+        its receiver (a spoofer controls both; the one that still agrees is re-admitted after readmit_s)."""
+        if offset is not None and named in RECEIVER:
+            self.offsets[named] = abs(offset)
         for out in self.receiver if named in RECEIVER else (named,):
             if out not in self.excluded and out != named:
                 self.with_receiver.add(out)
             self.excluded[out] = t_us
             self.agreed.pop(out, None)
         self.with_receiver.discard(named)
+
+    def blind(self, sensor: Sensor, sigma: float, readmit_sigma: float) -> bool:
+        """Could a test whose innovation has standard deviation `sigma` not tell the alarm's offset
+        from noise? Then agreeing with it proves nothing: the estimate has drifted too far to judge
+        (the sensor waits; an estimate that cannot hold is re-anchored, its alarm standing). For the
+        GNSS, whose test is against the estimate; the IMU's wait on their witnesses."""
+        return readmit_sigma * sigma >= self.offsets.get(sensor, float("inf"))
 
     def settle(self, sensor: Sensor, t_us: int, bad: bool) -> bool:
         """One more test of an excluded sensor; True when it is to be re-admitted now."""
@@ -49,17 +60,31 @@ class Health:
             return False
         return True
 
-    def readmit(self, sensor: Sensor, t_us: int, gnss_index: int) -> list[Event]:
+    def readmit(self, sensor: Sensor, t_us: int, gnss_index: int, silent: bool = False) -> list[Event]:
+        """Fuse `sensor` again. `silent`: not because it agreed (the estimate was re-anchored on it):
+        its alarm stands, latched, and no Cleared goes out."""
         del self.excluded[sensor]
         self.agreed.pop(sensor, None)
+        self.offsets.pop(sensor, None)
         if sensor == Sensor.ACCEL:
             self.accel_ref = None
         if sensor in self.with_receiver:            # it raised no alarm: nothing to clear on a ground station
             self.with_receiver.discard(sensor)
             return []
+        if silent:
+            self.latched.add(sensor)
+            return []
+        self.latched.discard(sensor)
         return [Cleared(t_us, gnss_index, sensor, c) for c in CHANNELS[sensor]]
 
-    def cleared_all(self, t_us: int, gnss_index: int) -> list[Event]:
-        """Every latched alarm, cleared (a new filter fuses every sensor again)."""
-        return [Cleared(t_us, gnss_index, s, c) for s in self.excluded if s not in self.with_receiver
-                for c in CHANNELS[s]]
+    def alarmed(self) -> set[Sensor]:
+        """The sensors whose alarm stands: excluded by an alarm of their own, or latched."""
+        return {s for s in self.excluded if s not in self.with_receiver} | self.latched
+
+    def carried(self, t_us: int, gnss_index: int) -> tuple[list[Event], set[Sensor]]:
+        """Across a re-initialisation (a new filter fuses every sensor again): the alarms cleared, but
+        a GNSS alarm's, which stands (a new filter starts on the GNSS: nothing has shown the attack over).
+        Returns the Cleared events and the sensors whose alarm is carried over, latched."""
+        gone = self.alarmed()
+        kept = gone & set(RECEIVER)
+        return [Cleared(t_us, gnss_index, s, c) for s in sorted(gone - kept) for c in CHANNELS[s]], kept

@@ -57,13 +57,16 @@ class Witnesses:
         self.course: deque[CourseWitness] = deque()
         self.mag: deque[HeadingWitness] = deque()
         self.last_vel = (np.zeros(2), np.eye(2))   # the latest GNSS velocity innovation and its S
+        self.vel_sigma = f.gnss_vel_sigma_mps       # the latest fix's velocity noise (its R)
 
     def add_heading(self, w: HeadingWitness) -> None:
         self.mag.append(w)
         keep_since(self.mag, w.t_us - 2 * WITNESS_S * 1e6 + 1)
 
-    def add_course(self, fix: GnssFix, x: np.ndarray, P_heading: float, ground: bool) -> None:
-        """The GNSS course against the filter's heading x (ground vehicles, at speed)."""
+    def add_course(self, fix: GnssFix, x: np.ndarray, P_heading: float, ground: bool, vel_sigma: float) -> None:
+        """The GNSS course against the filter's heading x (ground vehicles, at speed); vel_sigma the
+        fix's velocity noise."""
+        self.vel_sigma = vel_sigma
         speed = math.hypot(fix.vel_e_mps, fix.vel_n_mps)
         if not ground or speed < self.min_speed:
             self.course.clear()            # standing still (or nearly): no course to speak of
@@ -71,7 +74,7 @@ class Witnesses:
         course = math.atan2(fix.vel_n_mps, fix.vel_e_mps)
         r0 = math.remainder(course - x[TH], math.tau)          # against the heading alone
         r = math.remainder(r0 - math.atan2(x[VY], x[VX]), math.tau)    # against the filter's track
-        self.course.append(CourseWitness(r, math.sqrt((self.f.gnss_vel_sigma_mps / speed) ** 2 + P_heading),
+        self.course.append(CourseWitness(r, math.sqrt((vel_sigma / speed) ** 2 + P_heading),
                                          fix.t_us - int(self.f.gnss_delay_s * 1e6), course, speed, r0))
         keep_since(self.course, self.course[-1].t_us - 2 * WITNESS_S * 1e6 + 1, at=2)
 
@@ -128,7 +131,7 @@ class Witnesses:
             return s_gm / e_gm, None, None
         tc, course, speed = np.array(course).T
         tc = (tc - t0) / 1e6
-        s_gc, e_gc = slope(tc, np.interp(tc, t, gyro) - np.unwrap(course), self.f.gnss_vel_sigma_mps / speed.min())
+        s_gc, e_gc = slope(tc, np.interp(tc, t, gyro) - np.unwrap(course), self.vel_sigma / speed.min())
         return s_gm / e_gm, s_gc / e_gc, (s_gc - s_gm) / math.hypot(e_gm, e_gc)
 
     def lateral_bias(self, gyro_bias: float) -> float:

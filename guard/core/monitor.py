@@ -31,16 +31,22 @@ from guard.core.aiding import Aid
 from guard.core.aiding.gnss import FreezeWatch, GnssAiding
 from guard.core.aiding.imu import Averager, ImuAiding, heading, level
 from guard.core.detectors import DetectorConfig, make_detector
-from guard.core.ekf import BAY, BW, N_STATES, TH, VX, VY, FilterConfig, NavEKF
+from guard.core.ekf import BM, N_STATES, TH, VX, VY, X, Y, FilterConfig, NavEKF
 from guard.core.geo import WMM_EPOCH, LocalFrame, declination_rad
+from guard.core.fit import ModelFit
 from guard.core.health import Health
 from guard.core.history import History, ImuFusion, state_minus
-from guard.core.isolation import TURN_Z, HeadingWitness, Witnesses
-from guard.model.events import Alarm, Estimate, Event, Innovation, Notice, Tested
+from guard.core.isolation import HeadingWitness, Witnesses
+from guard.core.judge import Judge
+from guard.core.timebase import Timebase
+from guard.model.events import Alarm, Estimate, Event, Notice
 from guard.model.samples import Attitude, GnssFix, ImuSample, VehicleType
 from guard.model.sensors import CHANNELS, RECEIVER, Sensor
 
 REWIND_S = 20.0        # s of filter history kept to undo what a GNSS attack fed the filter before its alarm
+MAX_POS_SIGMA_M = 10_000.0     # an estimate less sure of its position than this has diverged
+MAX_SPEED_MPS = 300.0          # nor does a vehicle guard watches move faster
+IMU_RATE_SAMPLES = 5           # IMU intervals over which the stream's rate is judged
 
 
 @dataclass(frozen=True)
@@ -55,6 +61,9 @@ class MonitorConfig:
     imu_fusion_hz: float = 50.0             # a faster IMU is averaged down to this rate before fusion (0: off)
     freeze_speed_mps: float = 1.0           # a GNSS fix repeated to the last digit while faster than this is frozen
     vehicle: str = "auto"                   # "ground": v_y = 0 is fused; "air": not; "auto": from the HEARTBEAT
+    max_coast_m: float = 20.0               # m (1 sigma): an excluded GNSS the other sensors cannot hold the
+                                            # estimate against for longer is re-anchored on, its alarm standing
+    min_imu_hz: float = 8.0                 # Hz: a slower IMU stream (telemetry) is not integrated
 
 
 class Monitor:
@@ -79,8 +88,12 @@ class Monitor:
         self.ground = self.cfg.vehicle == "ground"
         self._receiver = RECEIVER if f.use_gnss_velocity else (Sensor.GNSS_POS,)
         self.skipped: Counter[str] = Counter()
+        self.timebase = Timebase(self.cfg.max_gap_s, self.skipped)
+        self.fit = ModelFit()
         self.gnss_index = -1
         self.roll = self.pitch = 0.0
+        self.inertial: bool | None = None           # None until the IMU's rate is known; False: too slow
+        self._imu_times: list[int] = []
         self._last_mag: tuple[float, float] | None = None     # levelled (m_x, m_y) of the latest IMU sample
         self._reset()
 
@@ -94,17 +107,21 @@ class Monitor:
         self.health = Health(self._receiver, self.cfg.readmit_s)
         self.witnesses = Witnesses(f, self.cfg.freeze_speed_mps)
         self.history = History(REWIND_S, f.gnss_delay_s, self.cfg.imu_fusion_hz or 1000.0)
+        self.judge = Judge(self.cfg, self.detector, self.health, self.witnesses, self.history)
         self.freeze = FreezeWatch(self.cfg.freeze_speed_mps)
         self.averager = Averager(self.cfg.imu_fusion_hz)
         self.detector.reset()
-        self._last_fix_t: int | None = None         # time stamp of the previous fix
-        self._vel_t = -math.inf                     # time of the last GNSS velocity tested
-        self._rewind_epochs = 0                     # a rewind owed: done at the next step, after the alarm is out
+        self._heading_unset = False                 # the filter started before the magnetometer spoke
         self._estimate_owed: tuple[int, int] | None = None   # (t_us, gnss_index) of the alarm's epoch
 
     @property
     def excluded(self) -> dict[Sensor, int]:
         return self.health.excluded
+
+    @property
+    def alarmed(self) -> set[Sensor]:
+        """The sensors whose alarm stands (excluded, or latched after a re-anchoring or a restart)."""
+        return self.health.alarmed()
 
     # -- the step -----------------------------------------------------------------------------
     def step(self, sample) -> list[Event]:
@@ -114,17 +131,18 @@ class Monitor:
         if isinstance(sample, VehicleType):
             return self._vehicle(sample)
         events = self.finish()                      # an alarm's rewind, then its epoch's Estimate, if owed
-        if isinstance(sample, GnssFix):
+        gnss = isinstance(sample, GnssFix)
+        if gnss:
             self.gnss_index += 1
-        timed = not (isinstance(sample, GnssFix) and not sample.fix_ok)    # a no-fix message's time means nothing
-        if timed and self.t_us is not None and (sample.t_us < self.t_us - 200_000
-                                                or sample.t_us > self.t_us + self.cfg.max_gap_s * 1e6):
-            jump = (sample.t_us - self.t_us) / 1e6
-            events.append(Notice(sample.t_us, "warning", f"time jumped {jump:+.1f} s: filter re-initialised"))
-            # a new filter fuses every sensor again: a ground station's latched alarms are cleared
-            events += self.health.cleared_all(sample.t_us, self.gnss_index)
-            self._reset()
-        if isinstance(sample, GnssFix):
+        if not (gnss and not sample.fix_ok):        # a no-fix message's time means nothing
+            kind = "gnss" if gnss else "imu"
+            verdict = self.timebase.check(kind, sample.t_us, self.t_us)
+            if verdict == "drop":
+                return events
+            if verdict == "rebase":
+                events += self._reinitialise(sample.t_us, f"time jumped {(sample.t_us - self.t_us) / 1e6:+.1f} s")
+                self.timebase.check(kind, sample.t_us, None)
+        if gnss:
             events += self._gnss(sample)
         elif isinstance(sample, ImuSample):
             events += self._imu(sample)
@@ -134,18 +152,33 @@ class Monitor:
         """At the end of a stream: what the last step still owed (an alarm's rewind and its epoch's
         Estimate, which wait for the next sample)."""
         events: list[Event] = []
-        if self._rewind_epochs:
-            self.history.rewind(self.ekf, self._rewind_epochs, self.t_us)
-            self._rewind_epochs = 0
+        if self.judge.rewind_epochs:
+            self.history.rewind(self.ekf, self.judge.rewind_epochs, self.t_us)
+            self.judge.rewind_epochs = 0
         if self._estimate_owed:
             events.append(self._estimate(*self._estimate_owed))
             self._estimate_owed = None
+        return events
+
+    def _reinitialise(self, t_us: int, why: str) -> list[Event]:
+        """A new filter, from the next fix. Its alarms are cleared but a GNSS one's, which stands."""
+        events: list[Event] = [Notice(t_us, "warning", f"{why}: filter re-initialised")]
+        cleared, kept = self.health.carried(t_us, self.gnss_index)
+        events += cleared
+        if kept:
+            events.append(Notice(t_us, "warning", f"the {' and '.join(sorted(kept))} alarm stands: a new "
+                                 "filter starts on the GNSS"))
+        self._reset()
+        self.timebase.reset()
+        self.health.latched |= kept
         return events
 
     def _vehicle(self, v: VehicleType) -> list[Event]:
         if self.cfg.vehicle != "auto" or v.ground == self.ground:
             return []
         self.ground = v.ground
+        if self.ekf is not None and self.inertial is not False:
+            self.ekf.tilting(not v.ground)
         what = ("a ground vehicle: its sideways velocity is held at zero" if v.ground
                 else "a vehicle that may move sideways: sideways velocity left free")
         return [Notice(self.t_us or 0, "info", f"the autopilot reports {what}")]
@@ -168,18 +201,18 @@ class Monitor:
         if self.gnss_lost:
             self.gnss_lost = False
             events.append(Notice(fix.t_us, "info", "GNSS fix back" if self.ekf else "GNSS fix: monitoring starts"))
-        if fix.t_us == self._last_fix_t:             # the same message again (a resend): nothing new
-            self.skipped["gnss_resent"] += 1
-            return events
-        self._last_fix_t = fix.t_us
         if self.ekf is None:
             return events + self._initialise(fix)
         self._advance(fix.t_us)
+        why = self._diverged()
+        if why:
+            return events + self._reinitialise(fix.t_us, f"the filter diverged ({why})") + self._initialise(fix)
         ekf, history = self.ekf, self.history
         # the state's own time, which a fix stamped before the last IMU sample is not: the rewind
         # re-runs the IMU fusions after it, and only those
         history.epoch(self.t_us, ekf.x, ekf.P)
         events += self._freeze(fix)
+        events += self._reanchor(fix)
         delayed = history.delay_s > 0
         xd = history.delayed(fix.t_us, self.t_us, ekf.x) if delayed else ekf.x     # the state the fix shows
         before = ekf.x.copy() if delayed else None
@@ -187,11 +220,13 @@ class Monitor:
         if delayed:                 # the position's correction, carried to the state the velocity is tested on
             xd = xd + state_minus(ekf.x, before)
         if self.cfg.filter.use_gnss_velocity and fix.vel_n_mps is not None:
-            self.witnesses.add_course(fix, xd, ekf.P[TH, TH], self.ground)
-            events += self._measure(Sensor.GNSS_VEL, fix.t_us, self.gnss_aid.velocity(fix, xd))
+            aid = self.gnss_aid.velocity(fix, xd)
+            self.witnesses.add_course(fix, xd, ekf.P[TH, TH], self.ground, math.sqrt(aid.R[0, 0]))
+            events += self._measure(Sensor.GNSS_VEL, fix.t_us, aid)
         if delayed:                 # the correction applies to the stored states too: the next fix sees it
             history.shift(state_minus(ekf.x, before))
-        if self._rewind_epochs:     # this epoch raised an alarm that rewinds: its estimate comes after that
+        events += self.fit.check(fix.t_us)
+        if self.judge.rewind_epochs:    # this epoch raised an alarm that rewinds: its estimate comes after that
             self._estimate_owed = (fix.t_us, self.gnss_index)
         else:
             events.append(self._estimate(fix.t_us, self.gnss_index))
@@ -201,6 +236,48 @@ class Monitor:
         x, f = self.ekf.x, self.frame
         return Estimate(t_us, gnss_index, float(x[0]), float(x[1]), float(x[TH]), x.copy(),
                         np.diagonal(self.ekf.P).copy(), (f.lat0, f.lon0, f.alt0))
+
+    def _diverged(self) -> str | None:
+        """Why the filter cannot be trusted any more (None: it can): not finite, a negative variance,
+        lost in position or at a speed no vehicle here reaches."""
+        x, P = self.ekf.x, self.ekf.P
+        if not (np.isfinite(x).all() and np.isfinite(P).all()):
+            return "its state is not finite"
+        if np.diagonal(P).min() < 0.0:
+            return "a negative variance"
+        if P[X, X] + P[Y, Y] > MAX_POS_SIGMA_M ** 2 or abs(x[VX]) > MAX_SPEED_MPS or abs(x[VY]) > MAX_SPEED_MPS:
+            return "lost in position or speed"
+        return None
+
+    def _reanchor(self, fix: GnssFix) -> list[Event]:
+        """An exclusion has a bounded life: once the other sensors cannot hold the estimate to within
+        max_coast_m, the GNSS can be neither confirmed nor refuted; the estimate is re-anchored on it,
+        and its alarm stands (latched, no Cleared). What a patient attacker gains: an offset that grew
+        slowly enough to be excluded, held out for that long, is then taken."""
+        P = self.ekf.P
+        if Sensor.GNSS_POS not in self.health.excluded or math.sqrt(P[X, X] + P[Y, Y]) <= self.cfg.max_coast_m:
+            return []
+        sigma = math.sqrt(P[X, X] + P[Y, Y])
+        e, n = self.frame.to_en(fix.lat_deg, fix.lon_deg)
+        x, s = self.ekf.x, self.gnss_aid.sigma_pos(fix)
+        x[X], x[Y] = e, n
+        anchored = [X, Y]
+        if fix.vel_n_mps is not None:           # and the velocity: v_body = R(theta)^T v_en
+            cs, sn = math.cos(x[TH]), math.sin(x[TH])
+            x[VX], x[VY] = cs * fix.vel_e_mps + sn * fix.vel_n_mps, -sn * fix.vel_e_mps + cs * fix.vel_n_mps
+            anchored += [VX, VY]
+        P[anchored, :] = 0.0
+        P[:, anchored] = 0.0
+        P[X, X] = P[Y, Y] = s * s
+        if fix.vel_n_mps is not None:
+            P[VX, VX] = P[VY, VY] = self.gnss_aid.sigma_vel(fix) ** 2
+        self.history.epochs.clear()                 # a rewind goes no further back than the anchor
+        self.history.imu_log.clear()
+        events: list[Event] = [Notice(fix.t_us, "warning", f"GNSS could not be confirmed or refuted (the "
+                                      f"estimate +-{sigma:.0f} m without it): re-anchored on it, its alarm stands")]
+        for sensor in [s for s in RECEIVER if s in self.health.excluded]:
+            events += self.judge.readmit(sensor, fix.t_us, self.gnss_index, silent=True)
+        return events
 
     def _freeze(self, fix: GnssFix) -> list[Event]:
         """A frozen (replayed or stuck) GNSS: its position and velocity are excluded together."""
@@ -219,8 +296,11 @@ class Monitor:
                             if dec is None else math.radians(dec))
         x0 = np.zeros(N_STATES)
         ve, vn = fix.vel_e_mps or 0.0, fix.vel_n_mps or 0.0
+        self._heading_unset = self._last_mag is None and self.inertial is not False
+        b0 = self.cfg.filter.mag_offset_rad         # the compass reads theta + b_psi
+        x0[BM] = b0
         if self._last_mag is not None:
-            th = heading(*self._last_mag, self.declination)
+            th = math.remainder(heading(*self._last_mag, self.declination) - b0, math.tau)
         else:
             th = math.atan2(vn, ve) if math.hypot(ve, vn) > 1.0 else 0.0
         x0[TH] = th
@@ -228,31 +308,42 @@ class Monitor:
         x0[VX] = math.cos(th) * ve + math.sin(th) * vn
         x0[VY] = -math.sin(th) * ve + math.cos(th) * vn
         self.ekf = NavEKF(self.cfg.filter, x0)
+        self.ekf.tilting(not self.ground)
+        if self.inertial is False:
+            self.ekf.hold_heading()
         self.t_us = fix.t_us
         return [Notice(fix.t_us, "info", f"filter initialised at {fix.lat_deg:.6f}, {fix.lon_deg:.6f}")]
 
     # -- IMU ------------------------------------------------------------------------------------
     def _imu(self, s: ImuSample) -> list[Event]:
-        ax, ay, rate, mag = level(s, self.roll, self.pitch)
+        events = self._imu_rate(s.t_us)
+        ax, ay, rate, mag, tilt, tilt_rate = level(s, self.roll, self.pitch)
         self._last_mag = mag
+        self.imu_aid.noise.add(s.t_us, ax, ay, rate, None if mag is None else heading(*mag, self.declination))
+        if self.inertial is False:
+            self.skipped["imu_too_slow"] += 1
+            return events
         if self.ekf is None:
             self.skipped["imu_before_first_fix"] += 1
-            return []
-        due = self.averager.add(s.t_us, ax, ay, rate, mag)
+            return events
+        due = self.averager.add(s.t_us, ax, ay, rate, mag, tilt, tilt_rate)
         if due is None:
-            return []
-        ax, ay, rate, mag = due
+            return events
+        ax, ay, rate, mag, tilt, tilt_rate, n = due
         self._advance(s.t_us)
         theta = None if mag is None else heading(*mag, self.declination)
         if theta is None:
             self.skipped["imu_no_magnetometer"] += 1
-        aid, blocks, angle = self.imu_aid.measurement(self.ekf.x, theta, rate, ax, ay, self.ground)
+        elif self._heading_unset:                   # the magnetometer's first word: the heading is its
+            self.ekf.set_heading(math.remainder(theta - self.ekf.x[BM], math.tau))
+            self._heading_unset = False
+        aid, blocks, angle = self.imu_aid.measurement(self.ekf.x, theta, rate, ax, ay, self.ground, tilt,
+                                                      tilt_rate, n)
         z, _, H, R = aid
         r, S, PHT = self.ekf.innovation(z, aid.hx, H, R, angle_rows=angle)
         if theta is not None:
             self.witnesses.add_heading(HeadingWitness(s.t_us, theta, rate, ay, self.ekf.x[VX]))
         # one stacked update, tested sensor by sensor
-        events: list[Event] = []
         keep: list[int] = []
         for sensor, i, j in blocks:
             ev, fused = self._test(sensor, s.t_us, r[i:j], S[i:j, i:j])
@@ -272,6 +363,25 @@ class Monitor:
         self.history.imu_fused(s.t_us, fusion, self.ekf.x)
         return events
 
+    def _imu_rate(self, t_us: int) -> list[Event]:
+        """The IMU stream's rate, judged once from its first IMU_RATE_SAMPLES intervals: a stream slower
+        than min_imu_hz (telemetry sends RAW_IMU at 1 to 4 Hz) cannot be integrated; GNSS position and
+        velocity are then tested against each other alone, the heading held (said once)."""
+        if self.inertial is not None:
+            return []
+        self._imu_times.append(t_us)
+        if len(self._imu_times) <= IMU_RATE_SAMPLES:
+            return []
+        hz = 1e6 / float(np.median(np.diff(self._imu_times)))
+        self.inertial = hz >= self.cfg.min_imu_hz
+        if self.inertial:
+            return []
+        if self.ekf is not None:
+            self.ekf.hold_heading()
+            self._heading_unset = False
+        return [Notice(t_us, "warning", f"IMU at {hz:.1f} Hz, under {self.cfg.min_imu_hz:g} Hz: not integrated; "
+                       "GNSS position and velocity are tested against each other alone (jumps, freezes, drifts)")]
+
     # -- testing and fusing -----------------------------------------------------------------------
     def _measure(self, sensor: Sensor, t_us: int, aid: Aid) -> list[Event]:
         r, S, PHT = self.ekf.innovation(aid.z, aid.hx, aid.H, aid.R)
@@ -281,78 +391,7 @@ class Monitor:
         return events
 
     def _test(self, sensor: Sensor, t_us: int, r: np.ndarray, S: np.ndarray) -> tuple[list[Event], bool]:
-        """Run the detector on one sensor's innovation; decide whether to fuse it."""
-        stat, thr, hits = self.detector.test(sensor, t_us, r, S)
-        if sensor == Sensor.GNSS_VEL:
-            self.witnesses.last_vel = (r, S)    # the axis to name if a magnetometer alarm turns out to be it
-            self._vel_t = t_us
-        if sensor not in self.health.excluded:
-            events = self._alarms(sensor, t_us, hits, stat, thr)
-            fused = sensor not in self.health.excluded
-        else:
-            events, fused = self._readmission(sensor, t_us, r, S, hits)
-        if self.record_tests:
-            events.insert(0, Tested(Innovation(t_us, sensor, CHANNELS[sensor], r, S, fused), self.gnss_index,
-                                    stat, thr))
+        events, fused = self.judge.test(sensor, t_us, r, S, self.ekf, self.t_us, self.gnss_index, self.record_tests)
+        if fused:
+            self.fit.add(sensor, t_us, r, S)
         return events, fused
-
-    def _alarms(self, sensor: Sensor, t_us: int, hits, stat, thr) -> list[Event]:
-        """The alarms of a sensor in use: named (isolation), raised, and what it excludes."""
-        events: list[Event] = []
-        health, bw = self.health, self.ekf.x[BW]
-        for i, offset in hits:
-            named, ambiguous, channel = self.witnesses.isolate(sensor, self.t_us, bw) \
-                if sensor in (Sensor.MAG, Sensor.GNSS_VEL) else (sensor, (), None)
-            if named in health.excluded:
-                continue
-            channel = CHANNELS[sensor][i] if named == sensor else channel or CHANNELS[named][0]
-            if named != sensor:                 # a witness named it: its own offset, not the alarm's
-                offset = self.witnesses.gyro_bias() if named == Sensor.GYRO else self.witnesses.lateral_bias(bw)
-            events.append(Alarm(t_us, self.gnss_index, named, channel, stat[i], thr[i], offset,
-                                self.detector.name, ambiguous))
-            if not self.cfg.exclude_on_alarm:
-                continue
-            health.exclude(named, t_us)
-            if named in RECEIVER:
-                # back to before the CUSUM's run began, its estimate of the onset; a velocity's run starts
-                # late (a spoof's offset grows slowly and the filter absorbs it as an accelerometer
-                # bias): back as far as the history goes
-                self._rewind_epochs = self.detector.run_length.get(sensor, 0) \
-                    if sensor == Sensor.GNSS_POS else len(self.history)
-            if named == Sensor.ACCEL and named != sensor:
-                # the bias of the oldest epoch kept is taken for the sensor's own; what the filter
-                # absorbed since is the attack's, given back
-                oldest = self.history.oldest_x()
-                health.accel_ref = float((oldest if oldest is not None else self.ekf.x)[BAY])
-                self.ekf.x[BAY] = health.accel_ref
-        return events
-
-    def _readmission(self, sensor: Sensor, t_us: int, r, S, hits) -> tuple[list[Event], bool]:
-        """An excluded sensor's test: re-admitted once it has agreed long enough and no witness holds it."""
-        z = np.abs(r) / np.sqrt(np.diagonal(S))
-        bad = bool(hits) or bool(np.any(z > self.cfg.readmit_sigma)) or self._held(sensor, t_us)
-        if not self.health.settle(sensor, t_us, bad):
-            return [], False
-        events = self._readmit(sensor, t_us)
-        if sensor == Sensor.GNSS_POS and Sensor.GNSS_VEL in self.health.excluded:
-            events += self._readmit(Sensor.GNSS_VEL, t_us)   # fixes without a velocity: back with its receiver
-        return events, True
-
-    def _held(self, sensor: Sensor, t_us: int) -> bool:
-        """A witness still holds an excluded sensor whose own innovation agrees."""
-        bw, witnesses = self.ekf.x[BW], self.witnesses
-        if sensor == Sensor.GYRO:               # its heading still turns away from the magnetometer's
-            return abs((witnesses.turns(self.t_us, bw) or (0.0,))[0]) >= TURN_Z[1]
-        if sensor == Sensor.ACCEL:              # it still reads sideways what the wheels do not do
-            ref = self.health.accel_ref
-            return ref is not None and witnesses.fresh(t_us) and \
-                abs(witnesses.lateral_bias(bw) - ref) >= self.cfg.filter.accel_sigma_mps2
-        if sensor == Sensor.GNSS_POS:
-            # a receiver whose velocity is still judged attacked: its position waits. (The filter's own
-            # uncertainty grows while both are out, which would let a spoofed position "agree".)
-            return Sensor.GNSS_VEL in self.health.excluded and t_us - self._vel_t < 1e6
-        return False
-
-    def _readmit(self, sensor: Sensor, t_us: int) -> list[Event]:
-        self.detector.forget(sensor)                # a fresh test: what it summed while excluded is spent
-        return self.health.readmit(sensor, t_us, self.gnss_index)

@@ -148,7 +148,7 @@ class Daemon:
         """grd_ratio: the largest statistic/threshold since the last call (an alarm's included), at least
         1.0 while a sensor is excluded."""
         peak, self.status.peak = self.status.peak, 0.0
-        latched = 1.0 if self.monitor.excluded else 0.0
+        latched = 1.0 if self.monitor.alarmed else 0.0
         return max(peak, latched, self.monitor.detector.take_peak())
 
     def _operator(self, text: str, level: str = "warning", send: bool = True) -> None:

@@ -17,6 +17,7 @@ from guard.core.detectors import DetectorConfig, PageCusum, PaperCusum, make_det
 from guard.core.ekf import FilterConfig
 from guard.model.events import Alarm, Cleared, Estimate, Notice, Tested
 from guard.model.samples import GnssFix, ImuSample
+from unit.synthetic import ALT0, GNSS_EVERY, IMU_DT_US, LAT0, LON0, T0_US, drive, of, run   # noqa: F401
 
 
 def siegmund_arl1(h: float, k: float, delta: float) -> float:
@@ -305,66 +306,7 @@ def test_reset_clears_every_channel():
         assert stat[0] == pytest.approx(1.0 if name == "paper" else 0.0)
 
 
-# -- the core on a synthetic drive -----------------------------------------------------------------------
-LAT0, LON0, ALT0 = 47.397742, 8.545594, 488.0
-G = 9.80665
-IMU_DT_US, GNSS_EVERY = 20_000, 10         # IMU 50 Hz, GNSS 5 Hz
-T0_US = 1_000_000
-B_H, B_Z = 0.2, 0.4                          # earth's field, horizontal and down (gauss)
-
-
-def drive(duration_s, speed=5.0, yaw=0.0, seed=0, gnss_offset=None, fix_ok=None, gnss_every=GNSS_EVERY,
-          vel_offset=None, with_vel=True, gnss_lag_us=0, mag=None, gyro_bias=None):
-    """A level vehicle on a straight line at constant speed; yaw is ENU (0 = east).
-
-    The IMU reads -g on z, the earth's field rotated into the body (FRD): a compass heading chi gives
-    m_x = B cos chi, m_y = -B sin chi. gnss_offset(t) -> (de, dn) adds an attack to the position,
-    vel_offset(t) -> (dve, dvn) to the velocity; fix_ok(t) -> False sends a no-fix message;
-    with_vel=False fixes without a velocity; gnss_lag_us delivers each fix that long after its time
-    stamp (after the IMU samples in between, as a receiver's latency does); mag(t) -> False leaves the
-    magnetometer out; gyro_bias(t) adds to the yaw rate. A fix every gnss_every IMU samples (50 Hz).
-    Small seeded noise on everything.
-    """
-    rng = np.random.default_rng(seed)
-    chi = math.pi / 2 - yaw
-    out, pending = [], []
-    for i in range(int(duration_s * 1e6 / IMU_DT_US) + 1):
-        t_us, t = T0_US + i * IMU_DT_US, i * IMU_DT_US / 1e6
-        if i % gnss_every == 0:
-            if fix_ok is None or fix_ok(t):
-                de, dn = gnss_offset(t) if gnss_offset else (0.0, 0.0)
-                dve, dvn = vel_offset(t) if vel_offset else (0.0, 0.0)
-                e = speed * math.cos(yaw) * t + de + rng.normal(0.0, 0.1)
-                n = speed * math.sin(yaw) * t + dn + rng.normal(0.0, 0.1)
-                lat, lon, _ = pymap3d.enu2geodetic(e, n, 0.0, LAT0, LON0, ALT0)
-                vn = speed * math.sin(yaw) + dvn + rng.normal(0.0, 0.03)
-                ve = speed * math.cos(yaw) + dve + rng.normal(0.0, 0.03)
-                fix = GnssFix(t_us, True, float(lat), float(lon), ALT0, vn if with_vel else None,
-                              ve if with_vel else None, 0.5, 0.1)
-            else:
-                fix = GnssFix(t_us, False, 0.0, 0.0, 0.0, None, None, None, None)
-            pending.append((t_us + gnss_lag_us, fix))
-        while pending and pending[0][0] <= t_us:
-            out.append(pending.pop(0)[1])
-        c = chi + rng.normal(0.0, 0.005)
-        a = rng.normal(0.0, 0.03, 3)
-        w = rng.normal(0.0, 0.001, 3)
-        m = (B_H * math.cos(c), -B_H * math.sin(c), B_Z) if mag is None or mag(t) else (None, None, None)
-        out.append(ImuSample(t_us, a[0], a[1], -G + a[2], w[0], w[1], w[2] - (gyro_bias(t) if gyro_bias else 0.0),
-                             *m))
-    return out
-
-
-def run(samples, cfg=None):
-    mon = Monitor(cfg or MonitorConfig(declination_deg=0.0))
-    events = [e for s in samples for e in mon.step(s)]
-    return mon, events
-
-
-def of(events, cls):
-    return [e for e in events if isinstance(e, cls)]
-
-
+# -- the core on a synthetic drive (tests/unit/synthetic.py) --------------------------------------------
 @pytest.mark.parametrize("speed, yaw", [(0.0, math.radians(30.0)), (5.0, 0.0)])
 def test_core_no_alarm_on_clean_data(speed, yaw):
     mon, events = run(drive(120.0, speed=speed, yaw=yaw, seed=1))
@@ -455,11 +397,11 @@ def test_core_rewind_at_a_slow_gnss_rate(gnss_every):
     mon, events = run(samples)
     alarm = of(events, Alarm)[0]
     assert alarm.sensor == "gnss_vel" and alarm.t_us >= T0_US + 60_000_000, alarm
-    back = [c.t_us for c in of(events, Cleared)]
-    assert not back or back[0] - alarm.t_us >= 10e6, (back[0] - alarm.t_us) / 1e6
-    # while the spoofed velocity is out (once back in, after long coasting, it pulls the estimate:
-    # a persistent offset and the IMU's drift cannot be told apart)
-    assert east_error([e for e in of(events, Estimate) if not back or e.t_us < back[0]], 5.0, alarm.t_us) < 2.0
+    back = [c.t_us for c in of(events, Cleared)] + [n.t_us for n in of(events, Notice) if "re-anchored" in n.text]
+    assert not back or min(back) - alarm.t_us >= 10e6, (min(back) - alarm.t_us) / 1e6
+    # while the spoofed velocity is out (once back in, or re-anchored on after long coasting, it pulls
+    # the estimate: a persistent offset and the IMU's drift cannot be told apart)
+    assert east_error([e for e in of(events, Estimate) if not back or e.t_us < min(back)], 5.0, alarm.t_us) < 2.0
 
 
 def test_core_a_fix_stamped_before_the_last_imu_sample_is_rewound_exactly():
@@ -536,17 +478,32 @@ def test_core_gyro_named_and_readmitted_when_the_magnetometer_stops(imu_fusion_h
     assert [c.sensor for c in of(events, Cleared)] == ["gyro"] and not mon.excluded
 
 
-def test_core_reinitialising_clears_what_was_excluded():
-    """A time jump re-initialises the filter, which fuses every sensor again: the latched alarm is
-    cleared on the ground station, not left standing."""
+def test_core_reinitialising_keeps_a_gnss_alarm_standing():
+    """A time jump of the whole stream (a reboot, a long outage) re-initialises the filter, which
+    starts again on the GNSS: a GNSS alarm is not cleared by it (no single event may hide an attack),
+    it stands, latched, and the operator is told so."""
     samples = drive(60.0, seed=2, gnss_offset=lambda t: (0.0, 10.0) if t >= 40.0 else (0.0, 0.0))
     jump_at = T0_US + 45_000_000
     samples = [s if s.t_us < jump_at else dataclasses.replace(s, t_us=s.t_us + 30_000_000) for s in samples]
     mon, events = run(samples)
     assert [(a.sensor, a.channel) for a in of(events, Alarm)] == [("gnss_pos", "north")]
-    cleared = of(events, Cleared)
-    assert {(c.sensor, c.channel) for c in cleared} == {("gnss_pos", "north"), ("gnss_pos", "east")}
-    assert all(c.t_us == jump_at + 30_000_000 for c in cleared)
+    assert not of(events, Cleared)
+    notices = [n.text for n in of(events, Notice)]
+    assert any("time jumped +30.0 s: filter re-initialised" in n for n in notices), notices
+    assert any("gnss_pos alarm stands" in n for n in notices), notices
+    assert "gnss_pos" in mon.alarmed and not mon.excluded
+
+
+def test_core_one_frame_with_a_wild_time_neither_stops_nor_resets_the_filter():
+    """One sample stamped far off the stream's clock (forward or back) is dropped and counted: the
+    filter is not re-initialised, and the ongoing attack's alarm is not cleared."""
+    samples = drive(60.0, seed=2, gnss_offset=lambda t: (0.0, 10.0) if t >= 40.0 else (0.0, 0.0))
+    for k, shift in ((2600, -45_000_000), (2700, 3_600_000_000)):       # an IMU sample at 52 s, one at 54 s
+        samples[k] = dataclasses.replace(samples[k], t_us=samples[k].t_us + shift)
+    mon, events = run(samples)
+    assert [(a.sensor, a.channel) for a in of(events, Alarm)] == [("gnss_pos", "north")]
+    assert not of(events, Cleared) and not [n for n in of(events, Notice) if "re-initialised" in n.text]
+    assert mon.skipped["time_off_base"] == 2 and "gnss_pos" in mon.excluded
 
 
 def test_page_onset_is_the_longest_run_of_a_sample():

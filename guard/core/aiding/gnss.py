@@ -2,7 +2,15 @@
 
     position  z = (e, n) of the fix in the local frame,  h(x) = (x, y),  H = H_POS
     velocity  z = (v_e, v_n),  h(x) = R(theta) (v_x, v_y),  H its Jacobian (gnss_velocity_model)
-R is the configured noise, diagonal.
+R is diagonal, from the receiver's own accuracy figures where it sends them (as EKF2 does), bounded
+below by the configured floors and above by ACC_CAP times them (a receiver, or a spoofer, that
+claims a huge error would otherwise blind every test):
+    position  sigma = max(gnss_pos_sigma_m, gnss_pos_acc_fraction * h_acc): h_acc counts the slow,
+              correlated error too, which the filter follows (q_pos_m); the innovation sees the
+              epoch-to-epoch part, about 0.4 of it on u-blox receivers
+    velocity  sigma = max(gnss_vel_sigma_mps, vel_acc): the speed accuracy is an epoch's noise
+and where it sends none, gnss_pos_unreported_m and gnss_vel_unreported_mps (real receivers' levels,
+as EKF3's defaults, not the simulator's).
 """
 
 from __future__ import annotations
@@ -29,21 +37,35 @@ def gnss_velocity_model(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.array([vx * cs - vy * sn, vx * sn + vy * cs]), H
 
 
+ACC_CAP = 10.0          # a reported accuracy counts up to this many times its floor
+
+
 class GnssAiding:
-    """Builds the GNSS measurements; `R_pos`, `R_vel` from the filter's configuration."""
+    """Builds the GNSS measurements, R from each fix's accuracy figures (see the module's docstring)."""
 
     def __init__(self, f: FilterConfig):
-        # R: measurement noise covariance of each measurement set
-        self.R_pos = np.eye(2) * f.gnss_pos_sigma_m ** 2
-        self.R_vel = np.eye(2) * f.gnss_vel_sigma_mps ** 2
+        self.f = f
+
+    def sigma_pos(self, fix: GnssFix) -> float:
+        f = self.f
+        if not fix.h_acc_m:
+            return f.gnss_pos_unreported_m
+        return min(max(f.gnss_pos_sigma_m, f.gnss_pos_acc_fraction * fix.h_acc_m), ACC_CAP * f.gnss_pos_sigma_m)
+
+    def sigma_vel(self, fix: GnssFix) -> float:
+        f = self.f
+        if not fix.vel_acc_mps:
+            return f.gnss_vel_unreported_mps
+        return min(max(f.gnss_vel_sigma_mps, fix.vel_acc_mps), ACC_CAP * f.gnss_vel_sigma_mps)
 
     def position(self, fix: GnssFix, frame: LocalFrame, x: np.ndarray) -> Aid:
         e, n = frame.to_en(fix.lat_deg, fix.lon_deg)
-        return Aid(np.array([e, n]), x[:2].copy(), H_POS, self.R_pos)
+        # R: the measurement noise covariance
+        return Aid(np.array([e, n]), x[:2].copy(), H_POS, np.eye(2) * self.sigma_pos(fix) ** 2)
 
     def velocity(self, fix: GnssFix, x: np.ndarray) -> Aid:
         hx, H = gnss_velocity_model(x)
-        return Aid(np.array([fix.vel_e_mps, fix.vel_n_mps]), hx, H, self.R_vel)
+        return Aid(np.array([fix.vel_e_mps, fix.vel_n_mps]), hx, H, np.eye(2) * self.sigma_vel(fix) ** 2)
 
 
 class FreezeWatch:

@@ -1,0 +1,108 @@
+"""Testing one sensor's innovation, and what follows: an alarm (named by the witnesses), the sensor's
+exclusion and the rewind it owes, or, for an excluded sensor, its re-admission.
+
+The judge owns no data but the time of the last GNSS velocity tested; it reads the detector, the
+health record, the witnesses and the history it is given, and the filter's state, and never calls
+the monitor back.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from guard.core.detectors import Detector
+from guard.core.ekf import BAY, BW, NavEKF
+from guard.core.health import Health
+from guard.core.history import History
+from guard.core.isolation import TURN_Z, Witnesses
+from guard.model.events import Alarm, Event, Innovation, Tested
+from guard.model.sensors import CHANNELS, RECEIVER, Sensor
+
+
+class Judge:
+    def __init__(self, cfg, detector: Detector, health: Health, witnesses: Witnesses, history: History):
+        self.cfg = cfg                              # MonitorConfig
+        self.detector, self.health, self.witnesses, self.history = detector, health, witnesses, history
+        self.vel_t = -math.inf                      # time of the last GNSS velocity tested
+        self.rewind_epochs = 0                      # what the last alarm asks the monitor to undo
+
+    def test(self, sensor: Sensor, t_us: int, r: np.ndarray, S: np.ndarray, ekf: NavEKF, now_us: int,
+             gnss_index: int, record: bool) -> tuple[list[Event], bool]:
+        """Run the detector on one sensor's innovation; decide whether to fuse it."""
+        stat, thr, hits = self.detector.test(sensor, t_us, r, S)
+        if sensor == Sensor.GNSS_VEL:
+            self.witnesses.last_vel = (r, S)    # the axis to name if a magnetometer alarm turns out to be it
+            self.vel_t = t_us
+        if sensor not in self.health.excluded:
+            events = self._alarms(sensor, t_us, hits, stat, thr, ekf, now_us, gnss_index)
+            fused = sensor not in self.health.excluded
+        else:
+            events, fused = self._readmission(sensor, t_us, r, S, hits, ekf, now_us, gnss_index)
+        if record:
+            events.insert(0, Tested(Innovation(t_us, sensor, CHANNELS[sensor], r, S, fused), gnss_index, stat, thr))
+        return events, fused
+
+    def _alarms(self, sensor, t_us, hits, stat, thr, ekf, now_us, gnss_index) -> list[Event]:
+        """The alarms of a sensor in use: named (isolation), raised, and what it excludes."""
+        events: list[Event] = []
+        health, bw = self.health, ekf.x[BW]
+        for i, offset in hits:
+            named, ambiguous, channel = self.witnesses.isolate(sensor, now_us, bw) \
+                if sensor in (Sensor.MAG, Sensor.GNSS_VEL) else (sensor, (), None)
+            if named in health.excluded:
+                continue
+            channel = CHANNELS[sensor][i] if named == sensor else channel or CHANNELS[named][0]
+            if named != sensor:                 # a witness named it: its own offset, not the alarm's
+                offset = self.witnesses.gyro_bias() if named == Sensor.GYRO else self.witnesses.lateral_bias(bw)
+            events.append(Alarm(t_us, gnss_index, named, channel, stat[i], thr[i], offset,
+                                self.detector.name, ambiguous))
+            if not self.cfg.exclude_on_alarm:
+                continue
+            health.exclude(named, t_us, offset)
+            if named in RECEIVER:
+                # back to before the CUSUM's run began, its estimate of the onset; a velocity's run starts
+                # late (a spoof's offset grows slowly and the filter absorbs it as an accelerometer
+                # bias): back as far as the history goes
+                self.rewind_epochs = self.detector.run_length.get(sensor, 0) \
+                    if sensor == Sensor.GNSS_POS else len(self.history)
+            if named == Sensor.ACCEL and named != sensor:
+                # the bias of the oldest epoch kept is taken for the sensor's own; what the filter
+                # absorbed since is the attack's, given back
+                oldest = self.history.oldest_x()
+                health.accel_ref = float((oldest if oldest is not None else ekf.x)[BAY])
+                ekf.x[BAY] = health.accel_ref
+        return events
+
+    def _readmission(self, sensor, t_us, r, S, hits, ekf, now_us, gnss_index) -> tuple[list[Event], bool]:
+        """An excluded sensor's test: re-admitted once it has agreed long enough and no witness holds it."""
+        z = np.abs(r) / np.sqrt(np.diagonal(S))
+        bad = bool(hits) or bool(np.any(z > self.cfg.readmit_sigma)) or \
+            self.health.blind(sensor, math.sqrt(float(np.max(np.diagonal(S)))), self.cfg.readmit_sigma) or \
+            self._held(sensor, t_us, ekf, now_us)
+        if not self.health.settle(sensor, t_us, bad):
+            return [], False
+        events = self.readmit(sensor, t_us, gnss_index)
+        if sensor == Sensor.GNSS_POS and Sensor.GNSS_VEL in self.health.excluded:
+            events += self.readmit(Sensor.GNSS_VEL, t_us, gnss_index)   # fixes without a velocity: back with it
+        return events, True
+
+    def _held(self, sensor: Sensor, t_us: int, ekf: NavEKF, now_us: int) -> bool:
+        """A witness still holds an excluded sensor whose own innovation agrees."""
+        bw, witnesses = ekf.x[BW], self.witnesses
+        if sensor == Sensor.GYRO:               # its heading still turns away from the magnetometer's
+            return abs((witnesses.turns(now_us, bw) or (0.0,))[0]) >= TURN_Z[1]
+        if sensor == Sensor.ACCEL:              # it still reads sideways what the wheels do not do
+            ref = self.health.accel_ref
+            return ref is not None and witnesses.fresh(t_us) and \
+                abs(witnesses.lateral_bias(bw) - ref) >= self.cfg.filter.accel_sigma_mps2
+        if sensor == Sensor.GNSS_POS:
+            # a receiver whose velocity is still judged attacked: its position waits. (The filter's own
+            # uncertainty grows while both are out, which would let a spoofed position "agree".)
+            return Sensor.GNSS_VEL in self.health.excluded and t_us - self.vel_t < 1e6
+        return False
+
+    def readmit(self, sensor: Sensor, t_us: int, gnss_index: int, silent: bool = False) -> list[Event]:
+        self.detector.forget(sensor)                # a fresh test: what it summed while excluded is spent
+        return self.health.readmit(sensor, t_us, gnss_index, silent)

@@ -1,0 +1,52 @@
+"""Whose clock a sample is on: the stream's own time base, a reboot's new one, or a lone wild stamp.
+
+The core's time is the samples' own (`t_us`, the autopilot's boot time). A sample off the current
+base (behind it by more than BACKWARD_US, or ahead by more than `max_gap_s`) is held, not taken:
+- an autopilot reboot, or a link back after a long outage, moves every stream: the new base is
+  confirmed when a GNSS fix and an IMU sample (each kind that has been heard) agree on it, within
+  `max_gap_s` of each other; the filter then starts again on it;
+- a lone frame with a wild time stamp (a glitch, or a forged frame) is dropped and counted: one
+  frame cannot re-initialise guard.
+A sample on the base but older than the last of its own stream (out of order, or the same again) is
+dropped and counted too: the filter never runs backwards.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+
+BACKWARD_US = 200_000       # a stream this far behind the filter is off its base (a reboot, a wild stamp)
+
+
+class Timebase:
+    def __init__(self, max_gap_s: float, skipped: Counter):
+        self.max_gap_us = max_gap_s * 1e6
+        self.skipped = skipped
+        self.heard: set[str] = set()                # the kinds of sample heard so far ("gnss", "imu")
+        self.last: dict[str, int] = {}              # the last time stamp taken, per kind
+        self.candidate: dict[str, tuple[int, int]] = {}   # kind -> (time, count) off the base, held
+
+    def reset(self) -> None:
+        self.last.clear()
+        self.candidate.clear()
+
+    def check(self, kind: str, t_us: int, now_us: int | None) -> str:
+        """"take", "drop", or "rebase" (a new time base confirmed: start again on it)."""
+        self.heard.add(kind)
+        if now_us is not None and (t_us < now_us - BACKWARD_US or t_us > now_us + self.max_gap_us):
+            c = self.candidate
+            if any(abs(t_us - t) > self.max_gap_us for t, _ in c.values()):
+                c.clear()                           # not the base the others moved to: start over
+            c[kind] = (t_us, c.get(kind, (0, 0))[1] + 1)
+            # every kind heard agrees on it; a stream of one kind alone, with two samples
+            if set(c) >= self.heard and (len(self.heard) > 1 or c[kind][1] >= 2):
+                return "rebase"
+            self.skipped["time_off_base"] += 1
+            return "drop"
+        self.candidate.clear()                      # back on the base: what was held was a wild stamp
+        last = self.last.get(kind)
+        if last is not None and t_us <= last:
+            self.skipped[f"{kind}_out_of_order" if t_us < last else f"{kind}_resent"] += 1
+            return "drop"
+        self.last[kind] = t_us
+        return "take"

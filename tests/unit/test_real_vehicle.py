@@ -1,0 +1,112 @@
+"""The core on a vehicle that is not the simulator's: a compass off by a few degrees, a receiver with
+its own noise and accuracy figures, a reboot, a filter pushed off the rails, a model that does not fit."""
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from guard.core.ekf import BM, FilterConfig
+from guard.core.monitor import MonitorConfig
+from guard.model.events import Alarm, Cleared, Estimate, Notice
+from guard.model.samples import GnssFix
+from unit.synthetic import T0_US, drive, of, run
+
+GROUND = MonitorConfig(declination_deg=0.0, vehicle="ground")
+
+
+@pytest.mark.parametrize("offset_deg", [-5.0, 2.0, 5.0])
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_compass_a_few_degrees_off_is_learnt_and_never_alarms(offset_deg, seed):
+    """A ground vehicle whose compass reads a few degrees off the World Magnetic Model: the offset
+    is learnt in the first minute of moving (b_psi within 1 degree; b_psi is in the ENU yaw's sense,
+    counter-clockwise, so a compass reading clockwise-high has a negative one), the heading is the
+    true one, and nothing alarms over ten minutes."""
+    mon, events = run(drive(600.0, yaw=0.4, seed=seed, mag_offset_deg=offset_deg), GROUND)
+    assert of(events, Alarm) == []
+    minute = [e for e in of(events, Estimate) if e.t_us >= T0_US + 60_000_000]
+    assert all(abs(math.degrees(e.x[BM]) + offset_deg) < 1.0 for e in minute), math.degrees(minute[0].x[BM])
+    assert abs(math.degrees(math.remainder(minute[-1].yaw_rad - 0.4, math.tau))) < 0.5
+
+
+def test_without_the_learnt_offset_the_same_compass_alarms():
+    """The control: the offset held at 0 (no learning), the same 5 degree compass raises alarms."""
+    f = FilterConfig(p0_mag_offset_rad=1e-6, q_mag_offset_rad=1e-9)
+    mon, events = run(drive(300.0, yaw=0.4, seed=1, mag_offset_deg=5.0), dataclasses.replace(GROUND, filter=f))
+    assert of(events, Alarm)
+
+
+def test_a_fast_change_of_the_compass_still_alarms():
+    """An attack on the magnetometer: 10 degrees at once at 120 s, after the offset was learnt."""
+    samples = drive(180.0, yaw=0.4, seed=3, mag_offset_deg=3.0)
+    k = next(i for i, s in enumerate(samples) if s.t_us >= T0_US + 120_000_000)
+    attacked = drive(180.0, yaw=0.4, seed=3, mag_offset_deg=13.0)
+    samples = samples[:k] + [a if hasattr(a, "mag_x_gauss") else s for s, a in zip(samples[k:], attacked[k:])]
+    mon, events = run(samples, GROUND)
+    alarms = of(events, Alarm)
+    assert alarms and alarms[0].sensor == "mag" and alarms[0].t_us - (T0_US + 120_000_000) < 1_000_000, alarms[:1]
+
+
+@pytest.mark.parametrize("reported", [True, False])
+def test_a_noisier_receiver_is_quiet_with_or_without_its_accuracy(reported):
+    """GNSS velocity noise of 0.25 m/s (four times the simulator's): with vel_acc reported, R follows
+    it; without, the default for a receiver that reports nothing (0.3 m/s, a real receiver's level)."""
+    samples = drive(300.0, seed=4, vel_noise=0.25, vel_acc=0.25 if reported else None)
+    mon, events = run(samples)
+    assert of(events, Alarm) == []
+
+
+def test_the_reported_accuracy_is_bounded_below_by_the_floor():
+    """A receiver that claims 1 cm/s while its noise is 0.03 m/s is held to the floor (0.06 m/s)."""
+    mon, events = run(drive(300.0, seed=5, vel_acc=0.01))
+    assert of(events, Alarm) == []
+
+
+def test_an_excluded_gnss_is_re_anchored_when_the_estimate_cannot_hold_and_its_alarm_stands():
+    """An air vehicle (no sideways constraint) whose receiver sends no velocity and whose GNSS north
+    is 10 m off for good: the alarm, the exclusion; the estimate coasts on the IMU and grows unsure,
+    and agreeing with an estimate that could no longer see 10 m proves nothing, so the GNSS is not
+    cleared by it; once the estimate's own uncertainty passes max_coast_m, a warning and the estimate
+    on the GNSS again. No Cleared (the alarm stands), no second alarm."""
+    samples = drive(240.0, seed=6, gnss_offset=lambda t: (0.0, 10.0 if t >= 60.0 else 0.0), with_vel=False)
+    mon, events = run(samples, MonitorConfig(declination_deg=0.0, vehicle="air"))
+    alarm, = of(events, Alarm)
+    assert (alarm.sensor, alarm.channel) == ("gnss_pos", "north")
+    again = [n for n in of(events, Notice) if "re-anchored" in n.text]
+    assert len(again) == 1 and again[0].t_us > alarm.t_us, [n.text for n in of(events, Notice)]
+    assert not of(events, Cleared) and "gnss_pos" in mon.alarmed and not mon.excluded
+    before = [e for e in of(events, Estimate) if alarm.t_us <= e.t_us < again[0].t_us]
+    assert max(abs(e.north_m) for e in before) < 5.0            # while out, the attack did not move it
+    assert abs(of(events, Estimate)[-1].north_m - 10.0) < 1.0   # the cost: re-anchored, it follows the GNSS
+
+
+def test_a_filter_pushed_off_the_rails_is_re_initialised_with_a_warning():
+    samples = drive(60.0, seed=7)
+    mon, events = run(samples[:1000])
+    mon.ekf.x[3] = np.nan                           # a corrupted state
+    later = [e for s in samples[1000:] for e in mon.step(s)]
+    notes = [n.text for n in of(later, Notice)]
+    assert any("the filter diverged (its state is not finite): filter re-initialised" in n for n in notes), notes
+    assert of(later, Alarm) == [] and np.isfinite(mon.ekf.x).all()
+
+
+def test_a_model_that_does_not_fit_is_a_warning_naming_the_sensor_and_its_factor():
+    """GNSS velocity noise three times what the receiver reports, for ten minutes: a WARNING saying
+    so (not an attack alarm, at the default floor's distance: 0.18 m/s against a 0.06 m/s model)."""
+    samples = drive(600.0, seed=8, vel_noise=0.18, vel_acc=0.06)
+    mon, events = run(samples)
+    fit = [n.text for n in of(events, Notice) if "the model" in n.text]
+    assert fit and fit[0].startswith("gnss_vel innovations ") and fit[0].endswith("x the model: run guard tune")
+    factor = float(fit[0].split()[2].rstrip("x"))
+    assert 2.0 < factor < 4.0, fit
+
+
+def test_repeated_and_out_of_order_samples_are_dropped_and_counted():
+    samples = drive(60.0, seed=9)
+    k = 1500
+    imu = [s for s in samples[k - 8:k] if not isinstance(s, GnssFix)]
+    samples = samples[:k] + [imu[-1], imu[-4]] + samples[k:]       # the last IMU sample again, one 60 ms old
+    mon, events = run(samples)
+    assert of(events, Alarm) == []
+    assert mon.skipped["imu_resent"] == 1 and mon.skipped["imu_out_of_order"] == 1, mon.skipped
