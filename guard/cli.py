@@ -70,8 +70,8 @@ def _sim(args) -> int:
         sc = scenario.load(args.scenario)
     except scenario.ScenarioError as e:
         raise GuardError(str(e)) from None
-    if not args.tlog and not args.out and not args.can:
-        raise GuardError("guard sim: give --tlog FILE, --out URL or --can URL")
+    if not (args.tlog or args.bin or args.ulg or args.out or args.can):
+        raise GuardError("guard sim: give --tlog FILE, --bin FILE, --ulg FILE, --out URL or --can URL")
     can = None
     if args.can:
         from sim.canbus import CanPublisher
@@ -87,11 +87,11 @@ def _sim(args) -> int:
 
     try:
         truth = run(sc, args.seed, tlog=args.tlog, out=args.out, speedup=args.speedup, fast=args.fast,
-                    on_statustext=show, can=can)
+                    on_statustext=show, can=can, bin=args.bin, ulg=args.ulg)
     finally:
         if can:
             can.close()
-    where = ", ".join(w for w in (args.tlog, args.out, args.can) if w)
+    where = ", ".join(w for w in (args.tlog, args.bin, args.ulg, args.out, args.can) if w)
     print(f"sim: scenario {sc.name}, seed {args.seed}, {sc.duration_s:.0f} s -> {where}", file=sys.stderr)
     return 0 if truth else 1
 
@@ -105,6 +105,16 @@ def _recover(args) -> int:
     from guard.sinks.mcap import recover
     messages, channels = recover(args.src, args.dst)
     print(f"{args.dst}: recovered {messages} messages on {channels} channels")
+    return 0
+
+
+def _tune(args) -> int:
+    from guard.config import load
+    from guard.runtime.tune import tune, write_profile
+    profile, _ = tune(args.logs, load(args.config))
+    write_profile(profile, args.out, args.logs)
+    changed = ", ".join(f"{k} = {v:g}" for k, v in profile["filter"].items()) or "nothing"
+    print(f"guard tune: {args.out}: {changed}")
     return 0
 
 
@@ -140,10 +150,22 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("--mcap", help="write an MCAP log here")
     r.set_defaults(func=_replay)
 
+    r = sub.add_parser("tune", help="fit the noise model to your vehicle's clean logs; write a profile for --config",
+                       description="Fit guard's noise model (GNSS, IMU and magnetometer noise, the receiver's "
+                       "latency, the compass's offset) to clean logs of one vehicle, print the margins it "
+                       "leaves, and write a TOML profile. Example: guard tune flight1.bin flight2.bin "
+                       "--out my-rover.toml, then guard run --config my-rover.toml")
+    r.add_argument("logs", nargs="+", help="clean logs of the vehicle (.tlog, .bin, .ulg), without an attack")
+    r.add_argument("--out", default="guard-profile.toml", help="the profile to write (default: guard-profile.toml)")
+    r.add_argument("--config", help="the config to start from (default: guard's defaults)")
+    r.set_defaults(func=_tune)
+
     r = sub.add_parser("sim", help="the simulator: a vehicle speaking MAVLink (and DroneCAN)")
     r.add_argument("--scenario", default="paper", help="scenario name (configs/scenarios/) or TOML file")
     r.add_argument("--seed", type=int, default=1)
     r.add_argument("--tlog", help="write a tlog (and NAME.truth.json beside it)")
+    r.add_argument("--bin", help="write the run as an ArduPilot DataFlash log too (and its truth beside it)")
+    r.add_argument("--ulg", help="write the run as a PX4 ULog too (and its truth beside it)")
     r.add_argument("--out", help="send live MAVLink to this pymavlink URL, e.g. udpout:127.0.0.1:14550")
     r.add_argument("--can", help="publish DroneCAN on this bus, e.g. can:virtual:bus0")
     r.add_argument("--speedup", type=float, default=1.0, help="live output at X times real time")

@@ -1,0 +1,149 @@
+"""guard tune: the noise model fitted to a vehicle's own clean logs, written as a profile for --config.
+
+    guard tune clean1.bin clean2.tlog ... --out my-vehicle.toml [--config base.toml]
+
+Every sensor's innovations, normalised by their covariance (z = r_i / sqrt(S_ii)), have unit variance
+when the model fits. From logs without an attack, guard tune fits, in this order:
+1. the receiver's latency (`filter.gnss_delay_s`): the delay in DELAYS that leaves the GNSS innovations
+   smallest (what tools/gnss_delay.py did; a latency shows in turns and speed changes);
+2. each sensor's noise floor: scaled until its innovations' standard deviation over all the logs is
+   1 / MARGIN of the model's (the noise set MARGIN above what the logs show), within BOUNDS of the
+   defaults; a few passes, as the filter's own uncertainty is part of each innovation's;
+3. the compass's offset (`filter.mag_offset_rad`): the offset the filter learnt, averaged over the logs.
+Then it replays the logs with the profile and prints each one's margin: the largest statistic over its
+threshold per sensor (1.0 is an alarm). The profile holds only what differs from the base config.
+Logs that hold an attack, or a sensor fault, would teach guard to accept it: give clean ones.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+from pathlib import Path
+
+from guard.config import Config
+from guard.core.ekf import BM, FilterConfig
+from guard.errors import GuardError
+from guard.model.events import Estimate, Tested
+from guard.model.sensors import Sensor
+from guard.runtime.replay import replay
+from guard.sinks.base import Sink
+
+DELAYS = (0.0, 0.05, 0.1, 0.15, 0.2, 0.25)
+MARGIN = 1.25           # the fitted noise is this much above what the logs show
+BOUNDS = (0.5, 20.0)    # a floor is scaled within these factors of its default
+PASSES = 3
+# the configuration keys each sensor's noise scales
+KEYS: dict[Sensor, tuple[str, ...]] = {
+    Sensor.GNSS_POS: ("gnss_pos_sigma_m", "gnss_pos_unreported_m"),
+    Sensor.GNSS_VEL: ("gnss_vel_sigma_mps", "gnss_vel_unreported_mps"),
+    Sensor.MAG: ("heading_sigma_rad",),
+    Sensor.GYRO: ("gyro_sigma_radps",),
+    Sensor.ACCEL: ("accel_sigma_mps2",),
+}
+
+
+class Innovations(Sink):
+    """Sums of z^2 of the fused innovations per sensor, and the compass offset the filter ended with."""
+
+    def __init__(self):
+        self.sum: dict[Sensor, float] = {}
+        self.n: dict[Sensor, int] = {}
+        self.mag_offset: float | None = None
+
+    def on_events(self, events) -> None:
+        for e in events:
+            if isinstance(e, Tested) and e.innovation.fused:
+                i = e.innovation
+                s = i.sensor
+                self.sum[s] = self.sum.get(s, 0.0) + sum(float(r * r / S) for r, S in zip(i.r, i.S.diagonal()))
+                self.n[s] = self.n.get(s, 0) + len(i.r)
+            elif isinstance(e, Estimate):
+                self.mag_offset = float(e.x[BM])
+
+    def factor(self, sensor: Sensor) -> float | None:
+        n = self.n.get(sensor, 0)
+        return math.sqrt(self.sum[sensor] / n) if n >= 50 else None
+
+
+def with_filter(cfg: Config, **changes) -> Config:
+    flt = dataclasses.replace(cfg.monitor.filter, **changes)
+    return dataclasses.replace(cfg, monitor=dataclasses.replace(cfg.monitor, filter=flt))
+
+
+def measure(logs: list[str], cfg: Config) -> tuple[Innovations, list[dict]]:
+    """Replay every log with cfg; the innovations of all of them, and each one's report."""
+    sink, reports = Innovations(), []
+    offsets = []
+    for log in logs:
+        one = Innovations()
+        reports.append(replay(log, cfg, listeners=[one]))
+        for s in one.sum:
+            sink.sum[s] = sink.sum.get(s, 0.0) + one.sum[s]
+            sink.n[s] = sink.n.get(s, 0) + one.n[s]
+        if one.mag_offset is not None:
+            offsets.append(one.mag_offset)
+    sink.mag_offset = sum(offsets) / len(offsets) if offsets else None
+    return sink, reports
+
+
+def gnss_z2(sink: Innovations) -> float:
+    n = sum(sink.n.get(s, 0) for s in (Sensor.GNSS_POS, Sensor.GNSS_VEL))
+    return sum(sink.sum.get(s, 0.0) for s in (Sensor.GNSS_POS, Sensor.GNSS_VEL)) / max(n, 1)
+
+
+def tune(logs: list[str], base: Config, say: Callable[[str], None] = print) -> tuple[dict, Config]:
+    """The profile (section -> key -> value, what differs from base) and the tuned config."""
+    for log in logs:
+        if not Path(log).is_file():
+            raise GuardError(f"{log}: no such file")
+    # 1. the receiver's latency
+    scores = []
+    for delay in DELAYS:
+        sink, _ = measure(logs, with_filter(base, gnss_delay_s=delay))
+        scores.append((gnss_z2(sink), delay))
+        say(f"latency {delay:.2f} s: GNSS innovations {math.sqrt(scores[-1][0]):.2f}x the model")
+    cfg = with_filter(base, gnss_delay_s=min(scores)[1])
+    # 2. each sensor's noise
+    defaults = FilterConfig()
+    for _ in range(PASSES):
+        sink, _ = measure(logs, cfg)
+        changes = {}
+        for sensor, keys in KEYS.items():
+            f = sink.factor(sensor)
+            if f is None:
+                continue
+            for key in keys:
+                lo, hi = (getattr(defaults, key) * b for b in BOUNDS)
+                changes[key] = min(max(getattr(cfg.monitor.filter, key) * f * MARGIN, lo), hi)
+        cfg = with_filter(cfg, **changes)
+    # 3. the compass's offset
+    sink, reports = measure(logs, cfg)
+    if sink.mag_offset is not None:
+        cfg = with_filter(cfg, mag_offset_rad=sink.mag_offset)
+    for sensor in KEYS:
+        f = sink.factor(sensor)
+        if f is not None:
+            say(f"{sensor}: innovations {f:.2f}x the tuned model")
+    _, reports = measure(logs, cfg)
+    for log, r in zip(logs, reports):
+        margin = ", ".join(f"{s} {v:.2f}" for s, v in sorted(r["peak_ratio"].items()))
+        say(f"{Path(log).name}: {len(r['alarms'])} alarm(s); largest statistic/threshold: {margin or 'none'}")
+    tuned, was = cfg.monitor.filter, base.monitor.filter
+    profile = {"filter": {f.name: round(getattr(tuned, f.name), 6) for f in dataclasses.fields(FilterConfig)
+                          if getattr(tuned, f.name) != getattr(was, f.name)}}
+    return profile, cfg
+
+
+def write_profile(profile: dict, path: str, logs: list[str]) -> None:
+    lines = ["# guard's noise model fitted by guard tune to these clean logs:"]
+    lines += [f"#   {Path(log).name}" for log in logs]
+    lines += ["# Use it with: guard run --config THIS_FILE (or guard replay ... --config THIS_FILE).", ""]
+    for section, table in profile.items():
+        lines.append(f"[{section}]")
+        lines += [f"{key} = {value!r}" for key, value in table.items()]
+    try:
+        Path(path).write_text("\n".join(lines) + "\n")
+    except OSError as e:
+        raise GuardError(f"{path}: cannot write: {e.strerror}") from None
