@@ -11,6 +11,7 @@ detectors side by side. Prints a table and writes CSV, JSON and figures.
     python tools/eval.py ... --resume         # an interrupted campaign, on from where it stopped (same code)
     python tools/eval.py --families clean --seeds 300 --first-seed 900   # new noise beside seeds 0..899
     python tools/eval.py --families paper --seeds 20 --detectors cusum paper   # the paper's scenario over seeds
+    python tools/eval.py --vehicles --detectors cusum   # every case on vehicles unlike the simulator's defaults
 
 Families (each a list of cases, each case run over --seeds seeds, attack at t = 30 s unless said):
   step      GNSS position step of 1, 2, 5, 10, 20 m on north and east
@@ -55,7 +56,7 @@ sys.path.insert(0, str(ROOT))
 from guard.config import parse, read as read_config   # noqa: E402
 from guard.errors import ConfigError             # noqa: E402
 from tools.evaluation.cases import (ALL_FAMILIES, START_S, cases, detector_config, phased,  # noqa: E402,F401
-                                    sim_seed)
+                                    sim_seed, vehicle)
 from tools.evaluation.figure import figure       # noqa: E402
 from tools.evaluation.runs import PARTIAL, Collector, campaign, one   # noqa: E402,F401
 from tools.evaluation.summary import extrapolate, plots, read_runs, summarise   # noqa: E402,F401
@@ -70,6 +71,9 @@ def main(argv=None) -> int:
     p.add_argument("--first-seed", type=int, default=0,
                    help="seeds FIRST .. FIRST+SEEDS-1: more runs on new noise beside an earlier campaign")
     p.add_argument("--quick", action="store_true", help="3 seeds, fewer cases: a few minutes")
+    p.add_argument("--vehicles", action="store_true",
+                   help="the second noise family: each seed a vehicle whose sensors differ from the defaults "
+                   "(tools/evaluation/cases.py: vehicle())")
     p.add_argument("--out", default="out/eval")
     p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
@@ -113,7 +117,8 @@ def main(argv=None) -> int:
             # seed by seed, every case within each: what a long campaign has done when it is stopped
             # covers every case alike
             seeds = range(args.first_seed, args.first_seed + args.seeds)
-            jobs = [(f, n, a, d, seed, args.detectors, work, tuple(args.set)) for seed in seeds for f, n, a, d in todo]
+            jobs = [(f, n, a, d, seed, args.detectors, work, tuple(args.set), args.vehicles)
+                    for seed in seeds for f, n, a, d in todo]
             if (out / PARTIAL).exists() and not args.resume:
                 print(f"eval: {out / PARTIAL} holds the runs of an interrupted campaign: --resume to go on "
                       "with them, or delete it", file=sys.stderr)

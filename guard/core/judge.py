@@ -13,11 +13,13 @@ import math
 import numpy as np
 
 from guard.core.detectors import Detector
-from guard.core.ekf import BAY, BW, NavEKF
+from guard.core.anchor import anchor
+from guard.core.ekf import BAY, BW, X, Y, NavEKF
 from guard.core.health import Health
 from guard.core.history import History
 from guard.core.isolation import TURN_Z, Witnesses
-from guard.model.events import Alarm, Event, Innovation, Tested
+from guard.model.events import Alarm, Event, Innovation, Notice, Tested
+from guard.model.samples import GnssFix
 from guard.model.sensors import CHANNELS, RECEIVER, Sensor
 
 
@@ -106,3 +108,21 @@ class Judge:
     def readmit(self, sensor: Sensor, t_us: int, gnss_index: int, silent: bool = False) -> list[Event]:
         self.detector.forget(sensor)                # a fresh test: what it summed while excluded is spent
         return self.health.readmit(sensor, t_us, gnss_index, silent)
+
+    def reanchor(self, ekf: NavEKF, fix: GnssFix, en: tuple[float, float], gnss_aid, max_coast_m: float,
+                 gnss_index: int) -> list[Event]:
+        """An exclusion has a bounded life: once the other sensors cannot hold the estimate to within
+        max_coast_m (1 sigma), the GNSS can be neither confirmed nor refuted; the estimate is
+        re-anchored on it, and its alarm stands (latched, no Cleared). What a patient attacker gains:
+        an offset that grew slowly enough to be excluded, held out for that long, is then taken."""
+        sigma = math.sqrt(ekf.P[X, X] + ekf.P[Y, Y])
+        if sigma <= max_coast_m:
+            return []
+        anchor(ekf, fix, en, gnss_aid.sigma_pos(fix), gnss_aid.sigma_vel(fix))
+        self.history.epochs.clear()                 # a rewind goes no further back than the anchor
+        self.history.imu_log.clear()
+        events: list[Event] = [Notice(fix.t_us, "warning", f"GNSS could not be confirmed or refuted (the "
+                                      f"estimate +-{sigma:.0f} m without it): re-anchored on it, its alarm stands")]
+        for sensor in [s for s in RECEIVER if s in self.health.excluded]:
+            events += self.readmit(sensor, fix.t_us, gnss_index, silent=True)
+        return events

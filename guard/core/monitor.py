@@ -29,24 +29,22 @@ import numpy as np
 
 from guard.core.aiding import Aid
 from guard.core.aiding.gnss import FreezeWatch, GnssAiding
-from guard.core.aiding.imu import Averager, ImuAiding, heading, level
+from guard.core.aiding.imu import Averager, ImuAiding, StreamRate, fuse_rows, heading, level
+from guard.core.anchor import diverged, initial_state
 from guard.core.detectors import DetectorConfig, make_detector
-from guard.core.ekf import BM, N_STATES, TH, VX, VY, X, Y, FilterConfig, NavEKF
+from guard.core.ekf import BM, TH, VX, VY, FilterConfig, NavEKF
 from guard.core.geo import WMM_EPOCH, LocalFrame, declination_rad
 from guard.core.fit import ModelFit
 from guard.core.health import Health
-from guard.core.history import History, ImuFusion, state_minus
+from guard.core.history import History, state_minus
 from guard.core.isolation import HeadingWitness, Witnesses
 from guard.core.judge import Judge
 from guard.core.timebase import Timebase
-from guard.model.events import Alarm, Estimate, Event, Notice
+from guard.model.events import Estimate, Event, Notice
 from guard.model.samples import Attitude, GnssFix, ImuSample, VehicleType
 from guard.model.sensors import CHANNELS, RECEIVER, Sensor
 
 REWIND_S = 20.0        # s of filter history kept to undo what a GNSS attack fed the filter before its alarm
-MAX_POS_SIGMA_M = 10_000.0     # an estimate less sure of its position than this has diverged
-MAX_SPEED_MPS = 300.0          # nor does a vehicle guard watches move faster
-IMU_RATE_SAMPLES = 5           # IMU intervals over which the stream's rate is judged
 
 
 @dataclass(frozen=True)
@@ -93,7 +91,7 @@ class Monitor:
         self.gnss_index = -1
         self.roll = self.pitch = 0.0
         self.inertial: bool | None = None           # None until the IMU's rate is known; False: too slow
-        self._imu_times: list[int] = []
+        self.imu_rate = StreamRate()
         self._last_mag: tuple[float, float] | None = None     # levelled (m_x, m_y) of the latest IMU sample
         self._reset()
 
@@ -204,7 +202,7 @@ class Monitor:
         if self.ekf is None:
             return events + self._initialise(fix)
         self._advance(fix.t_us)
-        why = self._diverged()
+        why = diverged(self.ekf)
         if why:
             return events + self._reinitialise(fix.t_us, f"the filter diverged ({why})") + self._initialise(fix)
         ekf, history = self.ekf, self.history
@@ -237,76 +235,30 @@ class Monitor:
         return Estimate(t_us, gnss_index, float(x[0]), float(x[1]), float(x[TH]), x.copy(),
                         np.diagonal(self.ekf.P).copy(), (f.lat0, f.lon0, f.alt0))
 
-    def _diverged(self) -> str | None:
-        """Why the filter cannot be trusted any more (None: it can): not finite, a negative variance,
-        lost in position or at a speed no vehicle here reaches."""
-        x, P = self.ekf.x, self.ekf.P
-        if not (np.isfinite(x).all() and np.isfinite(P).all()):
-            return "its state is not finite"
-        if np.diagonal(P).min() < 0.0:
-            return "a negative variance"
-        if P[X, X] + P[Y, Y] > MAX_POS_SIGMA_M ** 2 or abs(x[VX]) > MAX_SPEED_MPS or abs(x[VY]) > MAX_SPEED_MPS:
-            return "lost in position or speed"
-        return None
-
     def _reanchor(self, fix: GnssFix) -> list[Event]:
-        """An exclusion has a bounded life: once the other sensors cannot hold the estimate to within
-        max_coast_m, the GNSS can be neither confirmed nor refuted; the estimate is re-anchored on it,
-        and its alarm stands (latched, no Cleared). What a patient attacker gains: an offset that grew
-        slowly enough to be excluded, held out for that long, is then taken."""
-        P = self.ekf.P
-        if Sensor.GNSS_POS not in self.health.excluded or math.sqrt(P[X, X] + P[Y, Y]) <= self.cfg.max_coast_m:
+        """An exclusion has a bounded life (Judge.reanchor)."""
+        if Sensor.GNSS_POS not in self.health.excluded:
             return []
-        sigma = math.sqrt(P[X, X] + P[Y, Y])
-        e, n = self.frame.to_en(fix.lat_deg, fix.lon_deg)
-        x, s = self.ekf.x, self.gnss_aid.sigma_pos(fix)
-        x[X], x[Y] = e, n
-        anchored = [X, Y]
-        if fix.vel_n_mps is not None:           # and the velocity: v_body = R(theta)^T v_en
-            cs, sn = math.cos(x[TH]), math.sin(x[TH])
-            x[VX], x[VY] = cs * fix.vel_e_mps + sn * fix.vel_n_mps, -sn * fix.vel_e_mps + cs * fix.vel_n_mps
-            anchored += [VX, VY]
-        P[anchored, :] = 0.0
-        P[:, anchored] = 0.0
-        P[X, X] = P[Y, Y] = s * s
-        if fix.vel_n_mps is not None:
-            P[VX, VX] = P[VY, VY] = self.gnss_aid.sigma_vel(fix) ** 2
-        self.history.epochs.clear()                 # a rewind goes no further back than the anchor
-        self.history.imu_log.clear()
-        events: list[Event] = [Notice(fix.t_us, "warning", f"GNSS could not be confirmed or refuted (the "
-                                      f"estimate +-{sigma:.0f} m without it): re-anchored on it, its alarm stands")]
-        for sensor in [s for s in RECEIVER if s in self.health.excluded]:
-            events += self.judge.readmit(sensor, fix.t_us, self.gnss_index, silent=True)
-        return events
+        return self.judge.reanchor(self.ekf, fix, self.frame.to_en(fix.lat_deg, fix.lon_deg), self.gnss_aid,
+                                   self.cfg.max_coast_m, self.gnss_index)
 
     def _freeze(self, fix: GnssFix) -> list[Event]:
         """A frozen (replayed or stuck) GNSS: its position and velocity are excluded together."""
-        speed = math.hypot(self.ekf.x[VX], self.ekf.x[VY])
-        if not self.freeze.frozen(fix, speed) or Sensor.GNSS_POS in self.health.excluded:
+        alarm = self.freeze.check(fix, math.hypot(self.ekf.x[VX], self.ekf.x[VY]), self.gnss_index)
+        if alarm is None or Sensor.GNSS_POS in self.health.excluded:
             return []
         if self.cfg.exclude_on_alarm:
             self.health.exclude(Sensor.GNSS_POS, fix.t_us)
-        return [Alarm(fix.t_us, self.gnss_index, Sensor.GNSS_POS, "frozen", speed, self.cfg.freeze_speed_mps, 0.0,
-                      "freeze")]
+        return [alarm]
 
     def _initialise(self, fix: GnssFix) -> list[Event]:
         self.frame = LocalFrame(fix.lat_deg, fix.lon_deg, fix.alt_m)
         dec = self.cfg.declination_deg
         self.declination = (declination_rad(fix.lat_deg, fix.lon_deg, fix.alt_m, self.date or WMM_EPOCH)
                             if dec is None else math.radians(dec))
-        x0 = np.zeros(N_STATES)
-        ve, vn = fix.vel_e_mps or 0.0, fix.vel_n_mps or 0.0
         self._heading_unset = self._last_mag is None and self.inertial is not False
-        b0 = self.cfg.filter.mag_offset_rad         # the compass reads theta + b_psi
-        x0[BM] = b0
-        if self._last_mag is not None:
-            th = math.remainder(heading(*self._last_mag, self.declination) - b0, math.tau)
-        else:
-            th = math.atan2(vn, ve) if math.hypot(ve, vn) > 1.0 else 0.0
-        x0[TH] = th
-        # body velocity from the ground velocity: v_body = R(theta)^T v_en
-        x0[VX] = math.cos(th) * ve + math.sin(th) * vn
-        x0[VY] = -math.sin(th) * ve + math.cos(th) * vn
+        theta = None if self._last_mag is None else heading(*self._last_mag, self.declination)
+        x0 = initial_state(fix, theta, self.cfg.filter.mag_offset_rad)
         self.ekf = NavEKF(self.cfg.filter, x0)
         self.ekf.tilting(not self.ground)
         if self.inertial is False:
@@ -339,8 +291,7 @@ class Monitor:
             self._heading_unset = False
         aid, blocks, angle = self.imu_aid.measurement(self.ekf.x, theta, rate, ax, ay, self.ground, tilt,
                                                       tilt_rate, n)
-        z, _, H, R = aid
-        r, S, PHT = self.ekf.innovation(z, aid.hx, H, R, angle_rows=angle)
+        r, S, PHT = self.ekf.innovation(aid.z, aid.hx, aid.H, aid.R, angle_rows=angle)
         if theta is not None:
             self.witnesses.add_heading(HeadingWitness(s.t_us, theta, rate, ay, self.ekf.x[VX]))
         # one stacked update, tested sensor by sensor
@@ -352,27 +303,18 @@ class Monitor:
                 keep.extend(range(i, j))
         if self.ground:
             keep.append(len(r) - 1)                # a constraint, not a sensor: never tested, always fused
-        fusion = None
-        if len(keep) == len(r):
-            self.ekf.fuse(r, S, H, R, PHT)
-            fusion = ImuFusion(s.t_us, z, H, R, angle)
-        elif keep:
-            ix = np.ix_(keep, keep)
-            self.ekf.fuse(r[keep], S[ix], H[keep], R[ix], PHT[:, keep])
-            fusion = ImuFusion(s.t_us, z[keep], H[keep], R[ix], angle if keep[0] == 0 else ())
-        self.history.imu_fused(s.t_us, fusion, self.ekf.x)
+        self.history.imu_fused(s.t_us, fuse_rows(self.ekf, s.t_us, aid, r, S, PHT, keep, angle), self.ekf.x)
         return events
 
     def _imu_rate(self, t_us: int) -> list[Event]:
-        """The IMU stream's rate, judged once from its first IMU_RATE_SAMPLES intervals: a stream slower
-        than min_imu_hz (telemetry sends RAW_IMU at 1 to 4 Hz) cannot be integrated; GNSS position and
-        velocity are then tested against each other alone, the heading held (said once)."""
+        """An IMU stream slower than min_imu_hz (telemetry sends RAW_IMU at 1 to 4 Hz) cannot be
+        integrated: GNSS position and velocity are then tested against each other alone, the heading
+        held (said once)."""
         if self.inertial is not None:
             return []
-        self._imu_times.append(t_us)
-        if len(self._imu_times) <= IMU_RATE_SAMPLES:
+        hz = self.imu_rate.add(t_us)
+        if hz is None:
             return []
-        hz = 1e6 / float(np.median(np.diff(self._imu_times)))
         self.inertial = hz >= self.cfg.min_imu_hz
         if self.inertial:
             return []

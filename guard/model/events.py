@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 import pymap3d
 
-from guard.model.sensors import AMBIGUOUS, CHANNELS, UNITS, Sensor   # noqa: F401 (re-exported)
+from guard.model.sensors import AMBIGUOUS, CHANNELS, UNITS, Sensor   # noqa: F401 (re-exported for sinks)
 
 
 @dataclass(frozen=True, slots=True)

@@ -5,7 +5,7 @@
 Every sensor's innovations, normalised by their covariance (z = r_i / sqrt(S_ii)), have unit variance
 when the model fits. From logs without an attack, guard tune fits, in this order:
 1. the receiver's latency (`filter.gnss_delay_s`): the delay in DELAYS that leaves the GNSS innovations
-   smallest (what tools/gnss_delay.py did; a latency shows in turns and speed changes);
+   smallest (a latency shows in turns and speed changes);
 2. each sensor's noise floor: scaled until its innovations' standard deviation over all the logs is
    1 / MARGIN of the model's (the noise set MARGIN above what the logs show), within BOUNDS of the
    defaults; a few passes, as the filter's own uncertainty is part of each innovation's;

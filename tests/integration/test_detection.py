@@ -85,7 +85,7 @@ def test_ardupilot_sitl_logs_are_read_to_the_end_without_alarm(shared, name):
 
 @pytest.mark.parametrize("name", ["rover_clean_turns", "copter_clean_straight"])
 def test_the_tight_profile_is_quiet_on_ardupilot_logs_with_their_latency(shared, name):
-    """configs/guard-tight.toml on ArduPilot's SITL logs, with the latency tools/gnss_delay.py
+    """configs/guard-tight.toml on ArduPilot's SITL logs, with the latency guard tune
     suggests for them (0.05 s): quiet."""
     path = shared / "data" / "ardupilot-sitl" / f"{name}.tlog"
     if not path.exists():

@@ -3,7 +3,6 @@ in worker processes."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import statistics
 import sys
@@ -20,7 +19,7 @@ from guard.runtime.pump import Pump
 from guard.sinks.base import Sink
 from guard.sources.tlog import TlogReader
 from sim.run import run
-from tools.evaluation.cases import base_scenario, detector_config, phased, sim_seed
+from tools.evaluation.cases import base_scenario, detector_config, phased, sim_seed, vehicle
 
 
 class Collector(Sink):
@@ -45,9 +44,10 @@ class Collector(Sink):
 
 def one(job) -> list[dict]:
     """Simulate one case and seed, replay it through every detector; one row per detector."""
-    family, name, attacks, duration, seed, detectors, work, settings = job
+    family, name, attacks, duration, seed, detectors, work, settings, *fleet = job
     attacks, duration = phased(family, attacks, duration, seed)
-    sc = base_scenario(family, duration, attacks)
+    car = vehicle(seed) if fleet and fleet[0] else None
+    sc = base_scenario(family, duration, attacks, car)
     tlog = Path(work) / f"{abs(hash((name, seed)))}.tlog"
     truth = run(sc, sim_seed(family, attacks, seed), tlog=str(tlog))
     real = [a for a in truth["attacks"] if a["kind"] != "dropout"]
@@ -82,6 +82,8 @@ def one(job) -> list[dict]:
         row = {"family": family, "case": name, "seed": seed, "detector": det, "hours": duration / 3600,
                "false_alarms": len(false), "detected": bool(after),
                "delay": after[0].gnss_index - k0 if after else None,
+               "delay_s": (after[0].gnss_index - k0) / sc.rates.gnss_hz if after else None,
+               "vehicle": json.dumps(car) if car else None,
                "isolated": bool(right) and right[0] is after[0] and not right[0].ambiguous_with,
                "ambiguous": bool(right) and right[0] is after[0] and bool(right[0].ambiguous_with),
                "first_sensor": "|".join((after[0].sensor, *after[0].ambiguous_with)) + f" {after[0].channel}"
@@ -108,8 +110,8 @@ def campaign(jobs: list[tuple], out: Path, workers: int, resume: bool) -> list[d
     stopped: jobs with the same case, seed, detectors and settings are not run again. Rows come back
     in the jobs' order, whatever order the workers finish in."""
     def key(job):
-        family, name, _, _, seed, detectors, _, settings = job
-        return json.dumps([family, name, seed, list(detectors), list(settings)])
+        family, name, _, _, seed, detectors, _, settings, *fleet = job
+        return json.dumps([family, name, seed, list(detectors), list(settings), *fleet])
     done: dict[str, list[dict]] = {}
     partial = out / PARTIAL
     if resume and partial.is_file():

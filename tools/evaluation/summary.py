@@ -46,6 +46,12 @@ def read_runs(path: Path) -> list[dict]:
         return [{k: typed(v) for k, v in row.items()} for row in csv.DictReader(f)]
 
 
+def seconds(rs: list[dict], gnss_hz: float) -> list[float]:
+    """Each detected run's delay in seconds: its own (a run at its own GNSS rate), else at gnss_hz."""
+    return [r["delay_s"] if r.get("delay_s") is not None else r["delay"] / gnss_hz
+            for r in rs if r["delay"] is not None]
+
+
 def summarise(rows: list[dict], gnss_hz: float, arl0_samples: float) -> list[dict]:
     out = []
     keys = sorted({(r["family"], r["case"], r["detector"]) for r in rows}, key=lambda k: (k[0], k[1], k[2]))
@@ -56,8 +62,8 @@ def summarise(rows: list[dict], gnss_hz: float, arl0_samples: float) -> list[dic
         s = {"family": family, "case": case, "detector": det, "runs": len(rs),
              "detection_rate": sum(r["detected"] for r in rs) / len(rs) if family != "clean" else None,
              "median_delay_samples": pct(delays, 50), "p95_delay_samples": pct(delays, 95),
-             "median_delay_s": pct(delays, 50) / gnss_hz if delays else None,
-             "p95_delay_s": pct(delays, 95) / gnss_hz if delays else None,
+             "median_delay_s": pct(seconds(rs, gnss_hz), 50) if delays else None,
+             "p95_delay_s": pct(seconds(rs, gnss_hz), 95) if delays else None,
              "false_alarms_per_h": sum(r["false_alarms"] for r in rs) / hours,
              "isolation_rate": (sum(r["isolated"] for r in rs) / max(1, sum(r["detected"] for r in rs)))
              if delays else None,

@@ -22,7 +22,9 @@ import numpy as np
 from guard.core.aiding import Aid
 from guard.core.ekf import N_STATES, TH, VX, VY, X, Y, FilterConfig
 from guard.core.geo import LocalFrame
+from guard.model.events import Alarm
 from guard.model.samples import GnssFix
+from guard.model.sensors import Sensor
 
 H_POS = np.zeros((2, N_STATES)); H_POS[0, X] = H_POS[1, Y] = 1.0
 
@@ -76,7 +78,10 @@ class FreezeWatch:
         self.freeze_speed_mps = freeze_speed_mps
         self.last: tuple | None = None          # (lat, lon, v_n, v_e) of the previous fix
 
-    def frozen(self, fix: GnssFix, speed_mps: float) -> bool:
+    def check(self, fix: GnssFix, speed_mps: float, gnss_index: int) -> Alarm | None:
+        """The freeze's alarm, if this fix repeats the last one while the vehicle moves."""
         key = (fix.lat_deg, fix.lon_deg, fix.vel_n_mps, fix.vel_e_mps)
         repeated, self.last = key == self.last, key
-        return repeated and speed_mps >= self.freeze_speed_mps
+        if not repeated or speed_mps < self.freeze_speed_mps:
+            return None
+        return Alarm(fix.t_us, gnss_index, Sensor.GNSS_POS, "frozen", speed_mps, self.freeze_speed_mps, 0.0, "freeze")

@@ -23,6 +23,7 @@ import numpy as np
 
 from guard.core.aiding import Aid
 from guard.core.ekf import AX, AY, BAX, BAY, BM, BW, N_STATES, TH, VY, W, FilterConfig
+from guard.core.history import ImuFusion
 from guard.model.samples import ImuSample
 from guard.model.sensors import Sensor
 
@@ -113,6 +114,23 @@ class ImuNoise:
         return [min(max(f, math.sqrt(v / n)), NOISE_CAP * f) for f, v in zip(floors, self.var)]
 
 
+class StreamRate:
+    """A stream's rate, judged once from its first SAMPLES intervals (the median: a gap or a burst
+    does not decide it)."""
+
+    SAMPLES = 5
+
+    def __init__(self):
+        self.times: list[int] = []
+
+    def add(self, t_us: int) -> float | None:
+        """The rate in Hz once known (None before)."""
+        self.times.append(t_us)
+        if len(self.times) <= self.SAMPLES:
+            return None
+        return 1e6 / float(np.median(np.diff(self.times)))
+
+
 class Averager:
     """The mean of the IMU samples since the last fusion, due every 1/imu_fusion_hz (0: every sample)."""
 
@@ -177,3 +195,17 @@ class ImuAiding:
         R = np.diag(np.square(sig))
         angle = (0,) if theta is not None else ()
         return Aid(np.array(z), H @ x, H, R), blocks, angle
+
+
+def fuse_rows(ekf, t_us: int, aid: Aid, r: np.ndarray, S: np.ndarray, PHT: np.ndarray, keep: list[int],
+              angle: tuple[int, ...]) -> ImuFusion | None:
+    """Fuse the rows `keep` of a stacked measurement (those of the sensors in use); the fusion as the
+    history keeps it, for a rewind (None: nothing fused)."""
+    if len(keep) == len(r):
+        ekf.fuse(r, S, aid.H, aid.R, PHT)
+        return ImuFusion(t_us, aid.z, aid.H, aid.R, angle)
+    if not keep:
+        return None
+    ix = np.ix_(keep, keep)
+    ekf.fuse(r[keep], S[ix], aid.H[keep], aid.R[ix], PHT[:, keep])
+    return ImuFusion(t_us, aid.z[keep], aid.H[keep], aid.R[ix], angle if keep[0] == 0 else ())

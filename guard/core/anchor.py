@@ -1,0 +1,64 @@
+"""Where the filter starts, and where it starts again: the first state from a fix, a diverged filter
+told apart, and an estimate re-anchored on the GNSS when the other sensors can no longer hold it."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from guard.core.ekf import BM, N_STATES, TH, VX, VY, X, Y, NavEKF
+from guard.model.samples import GnssFix
+
+MAX_POS_SIGMA_M = 10_000.0     # an estimate less sure of its position than this has diverged
+MAX_SPEED_MPS = 300.0          # nor does a vehicle guard watches move faster
+
+
+def body_velocity(theta: float, ve: float, vn: float) -> tuple[float, float]:
+    """v_body = R(theta)^T v_en: (forward, left) of a ground velocity (east, north)."""
+    cs, sn = math.cos(theta), math.sin(theta)
+    return cs * ve + sn * vn, -sn * ve + cs * vn
+
+
+def initial_state(fix: GnssFix, theta_mag: float | None, b0: float) -> np.ndarray:
+    """The first state: at the fix's position (the frame's origin), the heading the magnetometer
+    reads less its known offset b0 (else the course, when moving, else 0), the fix's velocity."""
+    x0 = np.zeros(N_STATES)
+    ve, vn = fix.vel_e_mps or 0.0, fix.vel_n_mps or 0.0
+    x0[BM] = b0                                 # the compass reads theta + b_psi
+    if theta_mag is not None:
+        th = math.remainder(theta_mag - b0, math.tau)
+    else:
+        th = math.atan2(vn, ve) if math.hypot(ve, vn) > 1.0 else 0.0
+    x0[TH] = th
+    x0[VX], x0[VY] = body_velocity(th, ve, vn)
+    return x0
+
+
+def diverged(ekf: NavEKF) -> str | None:
+    """Why the filter cannot be trusted any more (None: it can): not finite, a negative variance,
+    lost in position or at a speed no vehicle here reaches."""
+    x, P = ekf.x, ekf.P
+    if not (np.isfinite(x).all() and np.isfinite(P).all()):
+        return "its state is not finite"
+    if np.diagonal(P).min() < 0.0:
+        return "a negative variance"
+    if P[X, X] + P[Y, Y] > MAX_POS_SIGMA_M ** 2 or abs(x[VX]) > MAX_SPEED_MPS or abs(x[VY]) > MAX_SPEED_MPS:
+        return "lost in position or speed"
+    return None
+
+
+def anchor(ekf: NavEKF, fix: GnssFix, en: tuple[float, float], sigma_pos: float, sigma_vel: float) -> None:
+    """The estimate's position (and velocity, where the fix has one) set to the fix's, uncorrelated,
+    with the fix's own noise as their uncertainty."""
+    x, P = ekf.x, ekf.P
+    x[X], x[Y] = en
+    anchored = [X, Y]
+    if fix.vel_n_mps is not None:
+        x[VX], x[VY] = body_velocity(x[TH], fix.vel_e_mps, fix.vel_n_mps)
+        anchored += [VX, VY]
+    P[anchored, :] = 0.0
+    P[:, anchored] = 0.0
+    P[X, X] = P[Y, Y] = sigma_pos ** 2
+    if fix.vel_n_mps is not None:
+        P[VX, VX] = P[VY, VY] = sigma_vel ** 2
