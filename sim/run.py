@@ -229,7 +229,9 @@ def _to_can(can, t_us: int, msg) -> None:
         speed, cog = msg.vel / 100.0, math.radians(msg.cog / 100.0)
         h_acc = msg.h_acc / 1000.0 if msg.h_acc else None      # 0: unknown, sent as no covariance
         can.send_gnss(t_us, msg.lat / 1e7, msg.lon / 1e7, msg.alt / 1000.0, speed * math.cos(cog),
-                      speed * math.sin(cog), 0.0, msg.fix_type >= 3, h_acc)
+                      speed * math.sin(cog), 0.0, msg.fix_type >= 3, h_acc,
+                      v_acc_m=msg.v_acc / 1000.0 if msg.v_acc else None,
+                      vel_acc_mps=msg.vel_acc / 1000.0 if msg.vel_acc else None)
     elif name == "RAW_IMU":
         g = 9.80665
         can.send_imu(t_us, (msg.xacc * g / 1000, msg.yacc * g / 1000, msg.zacc * g / 1000),

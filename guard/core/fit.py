@@ -25,30 +25,33 @@ REPEAT_GROWTH = 1.25
 
 class ModelFit:
     def __init__(self):
-        self.sum: dict[Sensor, float] = {}          # decayed sums of z^2 and of the channel count
-        self.n: dict[Sensor, float] = {}
-        self.t0: dict[Sensor, int] = {}
-        self.t: dict[Sensor, int] = {}
+        self.acc: dict[Sensor, list] = {}       # sensor -> [decayed sum of z^2, decayed count, first t, last t]
         self.said: dict[Sensor, tuple[int, float]] = {}    # when a warning went out, and its factor
 
     def add(self, sensor: Sensor, t_us: int, r: np.ndarray, S: np.ndarray) -> None:
-        z2 = np.minimum(np.square(r) / np.diagonal(S), CLIP * CLIP)
-        last = self.t.get(sensor)
-        decay = 1.0 if last is None else math.exp(-(t_us - last) / (TAU_S * 1e6))
-        self.sum[sensor] = self.sum.get(sensor, 0.0) * decay + float(z2.sum())
-        self.n[sensor] = self.n.get(sensor, 0.0) * decay + len(z2)
-        self.t[sensor] = t_us
-        self.t0.setdefault(sensor, t_us)
+        """One fused innovation (python floats: this runs at every fusion)."""
+        z2 = 0.0
+        for ri, si in zip(r.tolist(), S.diagonal().tolist()):
+            z2 += min(ri * ri / si, CLIP * CLIP)
+        a = self.acc.get(sensor)
+        if a is None:
+            self.acc[sensor] = [z2, float(len(r)), t_us, t_us]
+            return
+        decay = math.exp((a[3] - t_us) / (TAU_S * 1e6))
+        a[0] = a[0] * decay + z2
+        a[1] = a[1] * decay + len(r)
+        a[3] = t_us
 
     def factor(self, sensor: Sensor) -> float | None:
         """sqrt(mean z^2): 1 when the model fits; None before MATURE_S of innovations."""
-        if sensor not in self.t or self.t[sensor] - self.t0[sensor] < MATURE_S * 1e6:
+        a = self.acc.get(sensor)
+        if a is None or a[3] - a[2] < MATURE_S * 1e6:
             return None
-        return math.sqrt(self.sum[sensor] / self.n[sensor])
+        return math.sqrt(a[0] / a[1])
 
     def check(self, t_us: int) -> list[Notice]:
         out = []
-        for sensor in self.t:
+        for sensor in self.acc:
             f = self.factor(sensor)
             if f is None or f < WARN_FACTOR:
                 continue

@@ -34,6 +34,7 @@ import pytest
 from guard.sources.can import CanSource
 from guard.config import Config
 from guard.core.monitor import Monitor
+from guard.sources.tlog import TlogReader
 from guard.model.events import Alarm
 from guard.runtime.replay import replay
 from guard.model.samples import GnssFix
@@ -76,13 +77,16 @@ def both_paths(request, tmp_path_factory):
     with CanSource(url, gnss_node_id=None, imu_node_id=None) as source:    # first: it must be there to receive
         with CanPublisher(url) as publisher:
             truth = run(scenario.load(name), seed, tlog=str(tlog), can=publisher, fast=True)
-        alarms, gnss_t_us = drain(source, Monitor(Config().monitor, record_tests=False))
+        # the day the tlog says it was recorded, as its replay takes it (the magnetic declination's)
+        alarms, gnss_t_us = drain(source, Monitor(Config().monitor, record_tests=False, date=TlogReader(str(tlog)).date))
     return {"alarms": alarms, "gnss_t_us": gnss_t_us, "stats": source.stats, "messages": source.messages,
             "report": replay(str(tlog)), "tlog_gnss_t_us": truth["trajectory"]["t_usec"]}
 
 
 def test_late_drain_decodes_every_transfer_and_alarms_alike(both_paths):
-    """Every transfer published is decoded, however late; the first alarm has the same time, sensor, channel.
+    """Every transfer published is decoded, however late; the first alarm has the same sensor and
+    channel, within one GNSS sample (DroneCAN carries the IMU and the accuracies in float16, and guard
+    measures the IMU's noise from its own samples: the two paths' noise models differ by that much).
 
     Times are compared on the tlog's clock: a CAN time base may start elsewhere (the last GNSS
     sample of both paths is the same sample, whatever happened to the first).
@@ -98,16 +102,17 @@ def test_late_drain_decodes_every_transfer_and_alarms_alike(both_paths):
     assert report["alarms"] and can["alarms"], "attack missed on one path"
     first_tlog, first_can = report["alarms"][0], can["alarms"][0]
     can_to_tlog_us = can["tlog_gnss_t_us"][-1] - can["gnss_t_us"][-1]
-    assert (first_can.t_us + can_to_tlog_us, first_can.sensor, first_can.channel) == \
-        (first_tlog["time_usec"], first_tlog["sensor"], first_tlog["channel"])
+    assert (first_can.sensor, first_can.channel) == (first_tlog["sensor"], first_tlog["channel"])
+    gnss_period_us = (can["gnss_t_us"][-1] - can["gnss_t_us"][0]) / (len(can["gnss_t_us"]) - 1)
+    assert abs(first_can.t_us + can_to_tlog_us - first_tlog["time_usec"]) <= 1.01 * gnss_period_us
 
 
 def test_same_first_alarm_and_gnss_count_over_mavlink_and_can(both_paths):
     can, report = both_paths, both_paths["report"]
     assert len(can["gnss_t_us"]) == report["gnss_samples"]
     first_tlog, first_can = report["alarms"][0], can["alarms"][0]
-    assert (first_can.gnss_index, first_can.sensor, first_can.channel) == \
-        (first_tlog["gnss_index"], first_tlog["sensor"], first_tlog["channel"])
+    assert (first_can.sensor, first_can.channel) == (first_tlog["sensor"], first_tlog["channel"])
+    assert abs(first_can.gnss_index - first_tlog["gnss_index"]) <= 1       # float16 on CAN: see above
 
 
 # --- two processes, udp_multicast in a network namespace ---------------------------------------------------

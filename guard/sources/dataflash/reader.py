@@ -23,7 +23,7 @@ from itertools import repeat
 from guard.errors import SourceError
 from guard.model.samples import Attitude, GnssFix, ImuSample, Sample, VehicleType
 from guard.sources.base import LogSource
-from guard.sources.dataflash import survey
+import guard.sources.dataflash.survey as survey
 from guard.sources.dataflash.index import MAX_BOOT_US, Log, one_line, open_index
 from guard.sources.dataflash.verdicts import autopilot_verdicts
 from guard.sources.logs_common import mag_fresh

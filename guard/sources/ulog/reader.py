@@ -11,7 +11,7 @@ import numpy as np
 from guard.errors import SourceError
 from guard.model.samples import Sample, VehicleType
 from guard.sources.base import LogSource
-from guard.sources.ulog import survey
+import guard.sources.ulog.survey as survey
 from guard.sources.ulog.load import GPS_TOPICS, load
 from guard.sources.ulog.streams import CHUNK, Stream, attitude_stream, gnss_stream, imu_stream, vehicle_stream
 from guard.sources.ulog.verdicts import ekf_verdicts, message_verdicts
