@@ -82,6 +82,18 @@ def plot(trace: Trace, report: dict, out: str, truth: dict | None = None) -> Non
     for a in (truth or {}).get("attacks", []):
         for ax in axes:
             ax.axvline((a["start_time_usec"] - t0) / 1e6, color="grey", lw=0.8, ls=":")
+    # the autopilot's own verdict, where the log holds it: its EKF's test ratios over 1 (shaded) and
+    # its GNSS messages (ticks), beside guard's alarms
+    shown = set()
+    for v in report.get("autopilot", []):
+        start = (v["time_usec"] - t0) / 1e6
+        label = f"autopilot: {v['source']} {v['test']}" if v.get("end_usec") else "autopilot: GPS message"
+        kw = {"label": label} if label not in shown else {}
+        shown.add(label)
+        if v.get("end_usec"):
+            axes[2].axvspan(start, max((v["end_usec"] - t0) / 1e6, start + 0.2), color="tab:purple", alpha=0.2, **kw)
+        else:
+            axes[2].axvline(start, color="tab:purple", lw=0.8, ls="-.", **kw)
     axes[2].set_ylabel(f"{report['detector']} statistic\n{key[0]} {key[1]}")
     axes[2].set_yscale("symlog")
     axes[2].legend(loc="upper left", fontsize=8)

@@ -21,6 +21,7 @@ from pyulog import ULog
 
 from guard.core.aiding.imu import heading
 from guard.sources import open_log
+from integration.test_sim import read_tlog
 from sim import scenario as scn
 from sim.run import Simulation, run
 from sim.scenario import SCENARIO_DIR, Noise, ScenarioError
@@ -42,14 +43,6 @@ NEW_KEYS = {"mag_offset_deg": 0.0, "accel_scale": 0.0, "gyro_scale": 0.0, "imu_y
 def scenario_with(**noise) -> scn.Scenario:
     return scn.parse({**BASE, "noise": noise}, "vehicles.toml")
 
-
-def read_tlog(path) -> list:
-    conn = mavutil.mavlink_connection(str(path))
-    msgs = []
-    while (m := conn.recv_match()) is not None:
-        msgs.append(m)
-    conn.close()
-    return msgs
 
 
 def fields(m) -> dict:
