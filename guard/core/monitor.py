@@ -130,17 +130,16 @@ class Monitor:
             return self._vehicle(sample)
         events = self.finish()                      # an alarm's rewind, then its epoch's Estimate, if owed
         gnss = isinstance(sample, GnssFix)
-        if gnss:
-            self.gnss_index += 1
         if not (gnss and not sample.fix_ok):        # a no-fix message's time means nothing
             kind = "gnss" if gnss else "imu"
             verdict = self.timebase.check(kind, sample.t_us, self.t_us)
-            if verdict == "drop":
+            if verdict == "drop":                   # not a sample of the stream: not counted in k either
                 return events
             if verdict == "rebase":
                 events += self._reinitialise(sample.t_us, f"time jumped {(sample.t_us - self.t_us) / 1e6:+.1f} s")
                 self.timebase.check(kind, sample.t_us, None)
         if gnss:
+            self.gnss_index += 1
             events += self._gnss(sample)
         elif isinstance(sample, ImuSample):
             events += self._imu(sample)

@@ -25,9 +25,15 @@ WANTED = {mavlink.MAVLINK_MSG_ID_GPS_RAW_INT, mavlink.MAVLINK_MSG_ID_RAW_IMU, ma
           mavlink.MAVLINK_MSG_ID_HEARTBEAT}
 
 
+T_MAX_US = 4_102_444_800_000_000     # 2100-01-01 in unix microseconds: no boot or unix time goes past it
+
+
 def to_sample(msg) -> tuple[Sample | None, str | None]:
-    """Convert one decoded message to a sample, or (None, reason it was skipped)."""
+    """Convert one decoded message to a sample, or (None, reason it was skipped). A time stamp past
+    any boot or unix time (a forged or corrupted field) is dropped here, before any sink sees it."""
     name = msg.get_type()
+    if name in ("GPS_RAW_INT", "RAW_IMU") and not 0 <= msg.time_usec <= T_MAX_US:
+        return None, "time_implausible"
     if name == "GPS_RAW_INT":
         fix_ok = msg.fix_type >= 3
         lat, lon = msg.lat * 1e-7, msg.lon * 1e-7
