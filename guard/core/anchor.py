@@ -7,17 +7,11 @@ import math
 
 import numpy as np
 
-from guard.core.ekf import BM, N_STATES, TH, VX, VY, X, Y, NavEKF
+from guard.core.ekf import BM, N_STATES, TH, VX, VY, X, Y, NavEKF, body_velocity
 from guard.model.samples import GnssFix
 
 MAX_POS_SIGMA_M = 10_000.0     # an estimate less sure of its position than this has diverged
 MAX_SPEED_MPS = 300.0          # nor does a vehicle guard watches move faster
-
-
-def body_velocity(theta: float, ve: float, vn: float) -> tuple[float, float]:
-    """v_body = R(theta)^T v_en: (forward, left) of a ground velocity (east, north)."""
-    cs, sn = math.cos(theta), math.sin(theta)
-    return cs * ve + sn * vn, -sn * ve + cs * vn
 
 
 def initial_state(fix: GnssFix, theta_mag: float | None, b0: float) -> np.ndarray:

@@ -55,6 +55,12 @@ N_STATES = 12
 X, Y, TH, VX, VY, W, AX, AY, BW, BAX, BAY, BM = range(N_STATES)
 
 
+def body_velocity(theta: float, ve: float, vn: float) -> tuple[float, float]:
+    """v_body = R(theta)^T v_en: (forward, left) of a ground velocity (east, north)."""
+    cs, sn = math.cos(theta), math.sin(theta)
+    return cs * ve + sn * vn, -sn * ve + cs * vn
+
+
 @dataclass(frozen=True)
 class FilterConfig:
     """Noise model of the filter (1-sigma). Process noise is given per second (random-walk rates)."""
@@ -150,8 +156,8 @@ class NavEKF:
         x, c = self.x, self.cfg
         cs, sn = math.cos(x[TH]), math.sin(x[TH])
         ve, vn = x[VX] * cs - x[VY] * sn, x[VX] * sn + x[VY] * cs
-        cs, sn = math.cos(theta), math.sin(theta)
-        x[TH], x[VX], x[VY] = theta, cs * ve + sn * vn, -sn * ve + cs * vn
+        x[TH] = theta
+        x[VX], x[VY] = body_velocity(theta, ve, vn)
         self.P[TH, :] = self.P[:, TH] = 0.0
         self.P[TH, TH] = c.p0_heading_rad ** 2
 
