@@ -119,6 +119,9 @@ class NavEKF:
         self._F = np.eye(N_STATES)
         self._I = np.eye(N_STATES)
         self._diag = np.diag_indices(N_STATES)
+        # False: b_psi is held as it is, a "consider" state (its row of K zeroed): while a test is near
+        # its threshold, what the filter learns of the vehicle could be an attack's doing (Monitor)
+        self.learning = True
 
     def predict(self, T: float) -> None:
         """Propagate by T seconds: x = f(x), P = F P Fᵀ + Q, in steps of at most MAX_STEP_S (the
@@ -197,6 +200,8 @@ class NavEKF:
         """
         # K = P H' S^-1
         K = PHT @ np.linalg.inv(S)
+        if not self.learning:
+            K[BM] = 0.0             # the Joseph form below holds for any gain: P stays b_psi's own
         self.x += K @ r
         self.x[TH] = math.remainder(self.x[TH], math.tau)
         I_KH = self._I - K @ H

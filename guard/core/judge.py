@@ -23,17 +23,29 @@ from guard.model.samples import GnssFix
 from guard.model.sensors import CHANNELS, RECEIVER, Sensor
 
 
+CALM_RATIO = 0.5        # every test's statistic under this share of its threshold: the filter may learn
+
+
 class Judge:
     def __init__(self, cfg, detector: Detector, health: Health, witnesses: Witnesses, history: History):
         self.cfg = cfg                              # MonitorConfig
         self.detector, self.health, self.witnesses, self.history = detector, health, witnesses, history
         self.vel_t = -math.inf                      # time of the last GNSS velocity tested
         self.rewind_epochs = 0                      # what the last alarm asks the monitor to undo
+        self.ratios: dict[Sensor, float] = {}       # each sensor's latest statistic / threshold, largest channel
+
+    @property
+    def calm(self) -> bool:
+        """No test near its threshold: what adapts to the vehicle (the compass offset b_psi, the IMU's
+        measured noise) may adapt. A slow attack pushes some test's statistic up long before its alarm;
+        while it does, nothing learns from it, so it cannot teach the filter to accept it."""
+        return max(self.ratios.values(), default=0.0) < CALM_RATIO
 
     def test(self, sensor: Sensor, t_us: int, r: np.ndarray, S: np.ndarray, ekf: NavEKF, now_us: int,
              gnss_index: int, record: bool) -> tuple[list[Event], bool]:
         """Run the detector on one sensor's innovation; decide whether to fuse it."""
         stat, thr, hits = self.detector.test(sensor, t_us, r, S)
+        self.ratios[sensor] = max((g / h for g, h in zip(stat, thr) if 0.0 < h < math.inf), default=0.0)
         if sensor == Sensor.GNSS_VEL:
             self.witnesses.last_vel = (r, S)    # the axis to name if a magnetometer alarm turns out to be it
             self.vel_t = t_us

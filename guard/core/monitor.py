@@ -270,7 +270,8 @@ class Monitor:
         events = self._imu_rate(s.t_us)
         ax, ay, rate, mag, tilt, tilt_rate = level(s, self.roll, self.pitch)
         self._last_mag = mag
-        self.imu_aid.noise.add(s.t_us, ax, ay, rate, None if mag is None else heading(*mag, self.declination))
+        self.imu_aid.noise.add(s.t_us, ax, ay, rate, None if mag is None else heading(*mag, self.declination),
+                               learn=self.judge.calm)
         if self.inertial is False:
             self.skipped["imu_too_slow"] += 1
             return events
@@ -333,6 +334,7 @@ class Monitor:
 
     def _test(self, sensor: Sensor, t_us: int, r: np.ndarray, S: np.ndarray) -> tuple[list[Event], bool]:
         events, fused = self.judge.test(sensor, t_us, r, S, self.ekf, self.t_us, self.gnss_index, self.record_tests)
+        self.ekf.learning = self.judge.calm         # nothing is learnt while a test is near its threshold
         if fused:
             self.fit.add(sensor, t_us, r, S)
         return events, fused

@@ -97,9 +97,10 @@ class ImuNoise:
         self.var = [0.0, 0.0, 0.0, 0.0]
         self._last: tuple | None = None         # (t_us, ax, ay, rate, heading or None)
 
-    def add(self, t_us: int, ax: float, ay: float, rate: float, theta: float | None) -> None:
+    def add(self, t_us: int, ax: float, ay: float, rate: float, theta: float | None, learn: bool = True) -> None:
+        """One sample; `learn` False: remembered for the next difference, not learnt from."""
         last, self._last = self._last, (t_us, ax, ay, rate, theta)
-        if last is None or not 0 < t_us - last[0] <= NOISE_GAP_S * 1e6:
+        if not learn or last is None or not 0 < t_us - last[0] <= NOISE_GAP_S * 1e6:
             return
         dt = (t_us - last[0]) / 1e6
         a = min(1.0, dt / NOISE_TAU_S)
