@@ -6,3 +6,5 @@ that live, replay and CAN input all share.
 """
 
 __version__ = "0.1.0"
+
+DEFAULT_CONFIG_PATH = "/etc/guard/guard.toml"    # the config read when none is given, where it exists

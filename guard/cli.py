@@ -1,4 +1,4 @@
-"""The `guard` command: run, replay, sim, demo, mcap-recover.
+"""The `guard` command: run, replay, tune, sim, demo, config, mcap-recover.
 
 Errors a user can fix (a missing file, a bad config key, an unknown scenario, a link that cannot be
 opened) are one line on stderr and a non-zero exit status.
@@ -10,6 +10,7 @@ import argparse
 import logging
 import sys
 
+from guard import DEFAULT_CONFIG_PATH as DEFAULT_CONFIG
 from guard import __version__
 from guard.errors import ConfigError, GuardError
 
@@ -33,7 +34,9 @@ def _replay(args) -> int:
     log = None
     if args.mcap:
         from guard.sinks.mcap import McapLog
-        log = McapLog(args.mcap, metadata={"config": cfg.source_text, "source": args.file})
+        from guard.config import dump
+        log = McapLog(args.mcap, metadata={"config": cfg.source_text, "config_in_effect": dump(cfg),
+                                           "source": args.file})
         listeners.append(log)
     try:
         report = replay(args.file, cfg, listeners=listeners, progress=args.report != "-", imu=args.imu, gnss=args.gnss)
@@ -61,6 +64,27 @@ def _run(args) -> int:
     from guard.config import load
     from guard.runtime.daemon import Daemon
     return Daemon(load(args.config), connect=args.connect, mcap=args.mcap).run()
+
+
+def _config(args) -> int:
+    """The configuration in effect: the file's keys, the defaults for the rest, the overrides."""
+    from dataclasses import replace
+    from guard.config import default_path, dump, load, read
+    path = args.config or default_path()
+    cfg = load(path)
+    given = {f"{sec}.{key}" for sec, tab in read(path)[0].items() if isinstance(tab, dict) for key in tab} \
+        if path else set()
+    overrides = []
+    if args.connect:
+        cfg, _ = replace(cfg, link=replace(cfg.link, connect=args.connect)), overrides.append("link.connect (--connect)")
+    if args.mcap is not None:
+        cfg, _ = replace(cfg, log=replace(cfg.log, mcap=args.mcap)), overrides.append("log.mcap (--mcap)")
+    print(f"# guard {__version__}: the configuration in effect")
+    print(f"# file: {path or 'none (no --config, and no ' + DEFAULT_CONFIG + ')'}")
+    print(f"# from the file: {', '.join(sorted(given)) or 'nothing'}; every other key is its default")
+    print(f"# from the command line: {', '.join(overrides) or 'nothing'}")
+    print(dump(cfg), end="")
+    return 0
 
 
 def _sim(args) -> int:
@@ -102,7 +126,13 @@ def _demo(args) -> int:
 
 
 def _recover(args) -> int:
+    import os
     from guard.sinks.mcap import recover
+    if os.path.exists(args.dst):
+        if os.path.exists(args.src) and os.path.samefile(args.src, args.dst):
+            raise GuardError(f"mcap-recover: {args.dst} is the log to recover: write the copy elsewhere")
+        if not args.force:
+            raise GuardError(f"mcap-recover: {args.dst} exists: give another name, or --force to overwrite it")
     messages, channels = recover(args.src, args.dst)
     print(f"{args.dst}: recovered {messages} messages on {channels} channels")
     return 0
@@ -124,19 +154,60 @@ def _system_id(text: str) -> int:
     return int(text)
 
 
+class Defaults(argparse.HelpFormatter):
+    """Help that says an option's default where it has one (not for flags, nor where the help says it)."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if action.default not in (None, False, argparse.SUPPRESS) and "default" not in text:
+            text += " (default: %(default)s)"
+        return text
+
+
+RUN_EXAMPLES = """examples:
+  guard run                                            # link.connect of the config (default udpin:0.0.0.0:14550)
+  guard run --connect udpin:0.0.0.0:14550              # a mavlink-router or MAVProxy output to this port
+  guard run --connect /dev/ttyAMA0,921600              # the flight controller's companion (TELEM2) port
+  guard run --connect tcp:127.0.0.1:5760               # ArduPilot SITL
+  guard run --connect can:socketcan:can0               # DroneCAN GNSS and IMU on the vehicle's CAN bus
+  guard run --config my-rover.toml --mcap /var/log/guard
+  guard config --config my-rover.toml                  # what that would run with"""
+
+
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="guard", description="Detect attacks on a vehicle's navigation sensors.")
     p.add_argument("--version", action="version", version=f"guard {__version__}")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    # -v after the subcommand too (guard run -v): its default must not undo one given before it
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS, help="debug logging")
     sub = p.add_subparsers(dest="command", required=True)
+    fmt = Defaults
 
-    r = sub.add_parser("run", help="the daemon: read a live link, alarm on it, log to MCAP")
-    r.add_argument("--connect", help="pymavlink URL or can:INTERFACE:CHANNEL (overrides link.connect)")
-    r.add_argument("--config", help="TOML config file (see configs/guard.toml)")
-    r.add_argument("--mcap", help="MCAP log file or directory (overrides log.mcap)")
+    def command(name: str, **kw):
+        return sub.add_parser(name, parents=[common], formatter_class=kw.pop("formatter_class", fmt), **kw)
+
+    r = command("run", help="the daemon: read a live link, alarm on it, log to MCAP",
+                description="Read GPS_RAW_INT, RAW_IMU and ATTITUDE from a live MAVLink link (or DroneCAN), "
+                "run the detector, send the alarms back as STATUSTEXT and log to MCAP.",
+                epilog=RUN_EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
+    r.add_argument("--connect", help="pymavlink URL (udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, "
+                   "DEVICE,BAUD) or can:INTERFACE:CHANNEL; default: link.connect of the config "
+                   "(udpin:0.0.0.0:14550)")
+    r.add_argument("--config", help=f"TOML config file; default: {DEFAULT_CONFIG} if it exists, else the built-in "
+                   "defaults (guard config prints them)")
+    r.add_argument("--mcap", help="MCAP log file or directory; default: log.mcap of the config (none)")
     r.set_defaults(func=_run)
 
-    r = sub.add_parser("replay", help="run a log through the detector offline (tlog, DataFlash .bin, ULog .ulg)")
+    r = command("config", help="print the configuration in effect (file, defaults, overrides) as TOML",
+                description="Print the configuration guard run would use: the file's keys, every other key "
+                "at its default, and the command line's overrides, as a TOML file --config reads back.")
+    r.add_argument("--config", help=f"TOML config file (default: {DEFAULT_CONFIG} if it exists)")
+    r.add_argument("--connect", help="as guard run --connect")
+    r.add_argument("--mcap", help="as guard run --mcap")
+    r.set_defaults(func=_config)
+
+    r = command("replay", help="run a log through the detector offline (tlog, DataFlash .bin, ULog .ulg)")
     r.add_argument("file", help="a log: .tlog (MAVLink), .bin (ArduPilot DataFlash) or .ulg (PX4 ULog), "
                    "recognised by its content")
     r.add_argument("--imu", type=int, metavar="N", help="the IMU instance to read, in a log with several (default: the primary)")
@@ -150,7 +221,7 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("--mcap", help="write an MCAP log here")
     r.set_defaults(func=_replay)
 
-    r = sub.add_parser("tune", help="fit the noise model to your vehicle's clean logs; write a profile for --config",
+    r = command("tune", help="fit the noise model to your vehicle's clean logs; write a profile for --config",
                        description="Fit guard's noise model (GNSS, IMU and magnetometer noise, the receiver's "
                        "latency, the compass's offset) to clean logs of one vehicle, print the margins it "
                        "leaves, and write a TOML profile. Example: guard tune flight1.bin flight2.bin "
@@ -160,9 +231,9 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("--config", help="the config to start from (default: guard's defaults)")
     r.set_defaults(func=_tune)
 
-    r = sub.add_parser("sim", help="the simulator: a vehicle speaking MAVLink (and DroneCAN)")
+    r = command("sim", help="the simulator: a vehicle speaking MAVLink (and DroneCAN)")
     r.add_argument("--scenario", default="paper", help="scenario name (configs/scenarios/) or TOML file")
-    r.add_argument("--seed", type=int, default=1)
+    r.add_argument("--seed", type=int, default=1, help="the simulator's random seed (noise, attack phases)")
     r.add_argument("--tlog", help="write a tlog (and NAME.truth.json beside it)")
     r.add_argument("--bin", help="write the run as an ArduPilot DataFlash log too (and its truth beside it)")
     r.add_argument("--ulg", help="write the run as a PX4 ULog too (and its truth beside it)")
@@ -172,15 +243,18 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("--fast", action="store_true", help="live output as fast as possible (no pacing)")
     r.set_defaults(func=_sim)
 
-    r = sub.add_parser("demo", help="simulator and daemon on UDP loopback: watch the attack being caught")
-    r.add_argument("--scenario", default="paper")
-    r.add_argument("--seed", type=int, default=1)
-    r.add_argument("--speedup", type=float, default=4.0)
+    r = command("demo", help="simulator and daemon on UDP loopback: watch the attack being caught")
+    r.add_argument("--scenario", default="paper", help="scenario name or TOML file, as guard sim")
+    r.add_argument("--seed", type=int, default=1, help="the simulator's random seed (noise, attack phases)")
+    r.add_argument("--speedup", type=float, default=4.0, help="times real time")
     r.set_defaults(func=_demo)
 
-    r = sub.add_parser("mcap-recover", help="make a truncated MCAP log whole (after a crash)")
-    r.add_argument("src")
-    r.add_argument("dst")
+    r = command("mcap-recover", help="make a truncated MCAP log whole (after a crash)",
+                description="Copy every complete record of a cut MCAP log (a crash, a power loss) into a new, "
+                "finished file. Example: guard mcap-recover guard-20261123-101500.mcap recovered.mcap")
+    r.add_argument("src", help="the cut log (left as it is)")
+    r.add_argument("dst", help="the file to write (not the cut log itself)")
+    r.add_argument("--force", action="store_true", help="overwrite dst if it exists")
     r.set_defaults(func=_recover)
     return p
 

@@ -7,13 +7,20 @@ the key. Every key has a default; configs/guard.toml lists them all with their u
 from __future__ import annotations
 
 import math
+import os
 import tomllib
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 
+import tomli_w
+
+from guard import DEFAULT_CONFIG_PATH
 from guard.core.monitor import MonitorConfig
 from guard.core.detectors import DETECTORS, DetectorConfig
 from guard.core.ekf import FilterConfig
 from guard.errors import ConfigError
+
+
+DEFAULT_PATH = DEFAULT_CONFIG_PATH          # read when no --config is given and it exists
 
 
 @dataclass(frozen=True)
@@ -154,11 +161,35 @@ def parse(data: dict, where: str = "config", text: str = "") -> Config:
 
 
 def load(path: str | None) -> Config:
-    """Read and validate a config file (None: all defaults)."""
+    """Read and validate a config file (None: DEFAULT_PATH if it exists, else all defaults)."""
+    path = path or default_path()
     if path is None:
         return Config()
     data, text = read(path)
     return parse(data, path, text)
+
+
+def default_path() -> str | None:
+    """The config file read when none is given: DEFAULT_PATH, where it exists."""
+    return DEFAULT_PATH if os.path.exists(DEFAULT_PATH) else None
+
+
+def table(cfg: Config) -> dict:
+    """The whole configuration in effect, defaults included, as the TOML table a file would hold
+    (the sections of configs/guard.toml; an unset declination_deg is written "auto")."""
+    monitor = {f.name: getattr(cfg.monitor, f.name) for f in fields(MonitorConfig)
+               if f.name not in ("filter", "detector")}
+    out = {"link": asdict(cfg.link), "can": asdict(cfg.can), "log": asdict(cfg.log),
+           "monitor": monitor, "filter": asdict(cfg.monitor.filter), "detector": asdict(cfg.monitor.detector)}
+    if out["monitor"]["declination_deg"] is None:
+        out["monitor"]["declination_deg"] = "auto"
+    return out
+
+
+def dump(cfg: Config) -> str:
+    """table(cfg) as TOML text: what `guard config` prints and the MCAP log stores; parse() reads it
+    back to the same configuration."""
+    return tomli_w.dumps(table(cfg))
 
 
 def read(path: str) -> tuple[dict, str]:

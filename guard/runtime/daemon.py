@@ -12,13 +12,14 @@ from __future__ import annotations
 import datetime
 import logging
 import math
+import os
 import signal
 import time
 from collections import Counter
 
-from guard.config import Config
+from guard.config import Config, dump
 from guard.core.monitor import Monitor
-from guard.errors import SourceError
+from guard.errors import ConfigError, SourceError
 from guard.model.samples import GnssFix, ImuSample
 from guard.sources.link import MavlinkLink
 from guard.sources.live import open_link
@@ -31,6 +32,38 @@ log = logging.getLogger(__name__)
 
 POLL_S = 0.2            # the loop wakes at least this often (watchdog, heartbeat, link timeout)
 LOG_LOST_REPEAT_S = 60.0    # how often to repeat "MCAP log lost" while it stays lost
+UNIX_2001_US = 978_307_200_000_000
+
+
+class WallClock:
+    """The MCAP log's UTC (`guard.sinks.mcap`): this computer's clock against the vehicle's time since
+    boot, learnt at the first sample and again when they part by more than RESYNC_US (an autopilot
+    reboot), not at every sample (the link's jitter would shake the log's timeline)."""
+
+    RESYNC_US = 1_000_000
+
+    def __init__(self):
+        self.utc_offset_us: int | None = None
+
+    def saw(self, t_us: int) -> None:
+        if t_us >= UNIX_2001_US:            # a time stamp in UTC already (a GNSS's): nothing to learn
+            return
+        offset = time.time_ns() // 1000 - t_us
+        if self.utc_offset_us is None or abs(offset - self.utc_offset_us) > self.RESYNC_US:
+            self.utc_offset_us = offset
+
+
+def writable(path: str) -> None:
+    """An MCAP target guard can write (a directory, created if missing, or a file's directory), or a
+    ConfigError naming it, before the link opens: not "logging to" and then nothing logged."""
+    directory = path if not path.endswith(".mcap") else os.path.dirname(os.path.abspath(path))
+    try:
+        os.makedirs(directory, exist_ok=True)
+    except OSError as e:
+        raise ConfigError(f"log.mcap: {path}: cannot create {directory}: {e.strerror}") from None
+    if not os.path.isdir(directory) or not os.access(directory, os.W_OK | os.X_OK):
+        raise ConfigError(f"log.mcap: {path}: {directory} is not a directory this user can write "
+                          f"(run as the user the service runs as, or give it the directory)")
 
 
 def say(line: str) -> None:
@@ -55,7 +88,8 @@ class Daemon:
         self.source = None
         self.link: MavlinkLink | None = None
         self.log: McapLog | None = None
-        self.status = StatusText(None, cfg.link, out, self._operator)
+        self.status = StatusText(None, cfg.link, out, self._core_notice)
+        self.clock = WallClock()
         self._handlers = {}
 
     # -- life cycle ---------------------------------------------------------------------------------
@@ -78,6 +112,8 @@ class Daemon:
 
     def startup(self) -> None:
         link_cfg = self.cfg.link
+        if self.mcap_path:
+            writable(self.mcap_path)
         self.source = open_link(self.connect, self.cfg)
         if isinstance(self.source, MavlinkLink):
             self.link = self.source
@@ -88,9 +124,10 @@ class Daemon:
             self.log = McapLog(self.mcap_path, rotate_mb=c.rotate_mb or None, rotate_s=c.rotate_s or None,
                                keep_mb=c.keep_mb or None,
                                chunk_size=int(c.chunk_kb * 1024),
-                               metadata={"config": self.cfg.source_text, "connect": self.connect})
+                               metadata={"config": self.cfg.source_text, "config_in_effect": dump(self.cfg),
+                                         "connect": self.connect}, clock=self.clock)
             self.pump.sinks.append(self.log)
-        self.status = StatusText(self.link, link_cfg, self.out, self._operator)
+        self.status = StatusText(self.link, link_cfg, self.out, self._core_notice)
         self.pump.sinks.append(self.status)
         self.out(f"guard: listening on {self.connect}" + (f", logging to {self.mcap_path}" if self.log else ""))
         self.started = True
@@ -128,6 +165,8 @@ class Daemon:
 
     def handle(self, sample) -> list:
         """One sample through the core and out to the sinks."""
+        if self.log is not None and isinstance(sample, (GnssFix, ImuSample)):
+            self.clock.saw(sample.t_us)
         events = self.pump.feed(sample)
         if self.log is not None and self.log.errors > self._log_errors:    # the sink logged why; tell the operator too
             self._log_errors = self.log.errors
@@ -151,8 +190,14 @@ class Daemon:
         latched = 1.0 if self.monitor.alarmed else 0.0
         return max(peak, latched, self.monitor.detector.take_peak())
 
-    def _operator(self, text: str, level: str = "warning", send: bool = True) -> None:
+    def _core_notice(self, text: str, level: str = "warning", send: bool = True) -> None:
+        """A Notice of the core's: the MCAP log has it already (as an event)."""
+        self._operator(text, level, send, logged=True)
+
+    def _operator(self, text: str, level: str = "warning", send: bool = True, logged: bool = False) -> None:
         (log.warning if level == "warning" else log.info)("%s", text)
+        if self.log is not None and not logged:     # the log holds what the operator was told
+            self.log.note(self.monitor.t_us or 0, level, text)
         if send:
             self.status.statustext(f"GUARD {text}", level)
 

@@ -53,6 +53,9 @@ def replay(path: str, cfg: Config | None = None, *, listeners=(), progress: bool
     options = {k: v for k, v in (("imu", imu), ("gnss", gnss)) if v is not None}
     source = open_log(path, system_id=cfg.link.system_id if cfg.link.system_id else 0, **options)
     monitor = Monitor(cfg.monitor, record_tests=bool(listeners), date=source.date)
+    for sink in listeners:
+        if getattr(sink, "clock", False) is None:      # a sink that logs in UTC where the log says it
+            sink.clock = source
     report = ReportSink()
     pump = Pump(monitor, [report, *listeners])
     bar = Progress(source.size, progress)

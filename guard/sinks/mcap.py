@@ -7,9 +7,18 @@
     /alarms                 guard.Alarm (JSON)               each Alarm (kind "alarm") and Cleared ("cleared")
     /log                    foxglove.Log (protobuf)          alarms (ERROR), cleared (INFO), notices
 
-Times are the vehicle's: log_time = publish_time = t_us * 1000, integer nanoseconds. Every file holds a
-Metadata record named "guard". Chunks are zstd-compressed; a finished chunk is handed to the OS at once,
-so a crash loses at most the chunk being filled, and `recover` rebuilds a finished file from what is left.
+Times are UTC where the source knows it, so that Foxglove's timeline shows the flight's own date and
+time: log_time = publish_time = (t_us + the source's utc_offset_us) * 1000, integer nanoseconds, and the
+same in the messages' timestamps; the vehicle's own time (since boot) stays in every JSON record's
+`t_us`. A time stamp that is already UTC (past 2001 in unix microseconds) is taken as it is; with no
+offset known (a log that does not say), the vehicle's time. `clock` is anything with a `utc_offset_us`
+attribute (a log source, the daemon's wall clock), read at every message: an offset learnt late or
+changed by an autopilot reboot applies from then on.
+
+Every file holds a Metadata record named "guard" (the config in effect, defaults included, and where
+the data came from). Chunks are zstd-compressed; a finished chunk is handed to the OS at once, and an
+alarm finishes its chunk and syncs it to the disk, so a crash loses at most the chunk being filled and
+never an alarm; `recover` rebuilds a finished file from what is left.
 """
 
 from __future__ import annotations
@@ -43,6 +52,7 @@ from guard.sinks.base import Sink
 log = logging.getLogger(__name__)
 
 MAGIC = b"\x89MCAP0\r\n"
+UNIX_2001_US = 978_307_200_000_000      # a time stamp past this is UTC already, not time since boot
 RETRY_S = 30.0   # vehicle time between attempts to open a new file after an I/O error
 
 _NUM = {"type": ["number", "null"]}          # null stands for NaN and inf, which JSON cannot carry
@@ -70,6 +80,7 @@ def _nums(a) -> list[float | None]:
 
 
 def _stamp(t_us: int) -> Timestamp:
+    """t_us: UTC (or vehicle) microseconds, as _utc gives them."""
     return Timestamp(seconds=t_us // 1_000_000, nanos=(t_us % 1_000_000) * 1000)
 
 
@@ -102,7 +113,9 @@ class McapLog(Sink):
     """
 
     def __init__(self, path_or_dir: str, *, rotate_mb: float | None = None, rotate_s: float | None = None,
-                 chunk_size: int = 256 * 1024, metadata: dict[str, str] | None = None, keep_mb: float | None = None):
+                 chunk_size: int = 256 * 1024, metadata: dict[str, str] | None = None, keep_mb: float | None = None,
+                 clock=None):
+        self.clock = clock                # its utc_offset_us: vehicle time + it = UTC (module docstring)
         self._target = os.fspath(path_or_dir)
         self._keep_bytes = None if not keep_mb else int(keep_mb * 1e6)
         self._is_dir = os.path.isdir(self._target) or not self._target.endswith(".mcap")
@@ -130,7 +143,7 @@ class McapLog(Sink):
     def on_sample(self, sample) -> None:
         """Logs a GnssFix with a 3D fix; other samples are not logged."""
         if isinstance(sample, GnssFix) and sample.fix_ok:
-            fix = LocationFix(timestamp=_stamp(sample.t_us), frame_id="gnss", latitude=sample.lat_deg,
+            fix = LocationFix(timestamp=_stamp(self._utc(sample.t_us)), frame_id="gnss", latitude=sample.lat_deg,
                               longitude=sample.lon_deg, altitude=sample.alt_m,
                               velocity=Vector3(x=sample.vel_e_mps, y=sample.vel_n_mps))
             if sample.h_acc_m is not None:   # ENU, row-major; the receiver gives no vertical accuracy here
@@ -167,7 +180,7 @@ class McapLog(Sink):
         P = np.ravel(ev.P_diag)
         lat, lon = ev.lat_lon()
         self._proto("/estimate/fix", ev.t_us, LocationFix(
-            timestamp=_stamp(ev.t_us), frame_id="estimate", latitude=lat, longitude=lon,
+            timestamp=_stamp(self._utc(ev.t_us)), frame_id="estimate", latitude=lat, longitude=lon,
             # ENU, row-major: var(east), var(north); the state has no altitude
             position_covariance=[float(P[0]), 0, 0, 0, float(P[1]), 0, 0, 0, 0],
             position_covariance_type=LocationFix.DIAGONAL_KNOWN,
@@ -192,9 +205,34 @@ class McapLog(Sink):
                   f"ALARM {ev.sensor}/{ev.channel}: {ev.detector} statistic {ev.statistic:.3g} > threshold "
                   f"{ev.threshold:.3g}, offset {ev.offset:+.3g} {UNITS.get(ev.sensor, '')} "
                   f"(GNSS sample {ev.gnss_index})")
+        self.sync()
+
+    def sync(self) -> None:
+        """Finish the chunk being filled and put it on the disk (an alarm must survive a crash right
+        after it). Costs a chunk's compression ratio, so only at an alarm."""
+        if self._writer is None:
+            return
+        try:
+            self._writer.flush()
+            os.fsync(self._stream.fileno())
+            self._pos, self._unflushed = self._stream.tell(), 0
+        except OSError as exc:
+            self.lost_messages += self._unflushed
+            self._fail(exc, None)
 
     def _log(self, t_us: int, level: int, text: str) -> None:
-        self._proto("/log", t_us, Log(timestamp=_stamp(t_us), level=level, message=text, name="guard"))
+        self._proto("/log", t_us, Log(timestamp=_stamp(self._utc(t_us)), level=level, message=text, name="guard"))
+
+    def note(self, t_us: int, level: str, text: str) -> None:
+        """An operator line that is not the core's (a silent link, a lost stream) into /log too."""
+        self._log(t_us, Log.WARNING if level == "warning" else Log.INFO, text)
+
+    def _utc(self, t_us: int) -> int:
+        """The time a message is logged at: UTC where known (module docstring)."""
+        if t_us >= UNIX_2001_US:
+            return t_us
+        offset = getattr(self.clock, "utc_offset_us", None)
+        return t_us + offset if offset and t_us + offset > 0 else t_us
 
     def _json(self, topic: str, schema: str, t_us: int, record: dict) -> None:
         self._write(topic, schema, "json", t_us, json.dumps(record, allow_nan=False).encode())
@@ -227,7 +265,8 @@ class McapLog(Sink):
                     self._ids[schema] = self._writer.register_schema(schema, *_schema(schema))
                 self._ids[topic] = self._writer.register_channel(topic, encoding, self._ids[schema])
             self._unflushed += 1
-            self._writer.add_message(self._ids[topic], t_us * 1000, data, t_us * 1000)
+            t_ns = self._utc(t_us) * 1000
+            self._writer.add_message(self._ids[topic], t_ns, data, t_ns)
             if self._stream.tell() != self._pos:   # a chunk was finished: hand it to the OS now
                 self._stream.flush()
                 self._pos, self._unflushed = self._stream.tell(), 0

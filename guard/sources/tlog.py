@@ -12,7 +12,7 @@ import os
 from collections.abc import Iterator
 
 from guard.errors import SourceError
-from guard.model.samples import Sample
+from guard.model.samples import ImuSample, Sample
 from guard.sources.base import LogSource
 from guard.sources.mavlink import WANTED, mavlink, to_sample
 
@@ -29,7 +29,9 @@ def looks_like_tlog(head: bytes) -> bool:
 class TlogReader(LogSource):
     """Iterates over the frames of a tlog; `messages` and `skipped` count what it saw."""
 
-    def __init__(self, path: str, system_id: int = 0):
+    PEEK_SAMPLES = 5000     # how far into the log opening looks for the first IMU sample's time
+
+    def __init__(self, path: str, system_id: int = 0, peek: bool = True):
         super().__init__()
         self.path = path
         self.system_id = system_id          # 0: any system
@@ -47,6 +49,13 @@ class TlogReader(LogSource):
                      if T_MIN_US <= first <= T_MAX_US else None)
         self.first_time_us: int | None = None
         self.last_time_us: int | None = None
+        if peek:                # UTC from the start (a no-fix GNSS message has no time to learn it from)
+            probe = TlogReader(path, system_id, peek=False)
+            for n, _ in enumerate(probe.samples()):
+                if probe.utc_offset_us is not None or n >= self.PEEK_SAMPLES:
+                    break
+            probe.close()
+            self.utc_offset_us = probe.utc_offset_us
 
     def close(self) -> None:
         self._file.close()
@@ -55,6 +64,9 @@ class TlogReader(LogSource):
         for msg in self:
             sample, reason = to_sample(msg)
             if sample is not None:
+                if self.utc_offset_us is None and isinstance(sample, ImuSample) and sample.t_us < T_MIN_US:
+                    # the ground station's clock at the first IMU sample: UTC for the log (its latency aside)
+                    self.utc_offset_us = self.last_time_us - sample.t_us
                 yield sample
             elif reason:
                 self.skipped[reason] += 1

@@ -71,7 +71,7 @@ class DataFlashReader(LogSource):
         self._mag = lg.instances("MAG").get(0)
         self._att = ("ATT", lg.offsets("ATT")) if lg.offsets("ATT") else None
         self._accuracy = survey.accuracies(lg, self._gnss, self._gnss_n)
-        self.date = survey.gps_date(lg, self._gnss)
+        self.date, self.utc_offset_us = survey.gps_utc(lg, self._gnss)
         used = [(f"IMU {self._imu_n}", self._imu), (f"GPS {self._gnss_n}", self._gnss), ("MAG", self._mag),
                 ("ATT", self._att)]
         rates = [f"{label}: {survey.rate(lg, s)} Hz" for label, s in used if s is not None]

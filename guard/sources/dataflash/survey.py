@@ -100,17 +100,18 @@ def accuracies(log: Log, gnss: tuple | None, n: int | None) -> dict[int, tuple[f
     return {t: (h if h else None, s if s else None) for t, h, s in log.rows(gpa[0], ["HAcc", "SAcc"], gpa[1])}
 
 
-def gps_date(log: Log, gnss: tuple | None) -> datetime.date | None:
-    """The UTC day of the first GPS message with a fix (GWk/GMS; older logs Week/TimeMS)."""
+def gps_utc(log: Log, gnss: tuple | None) -> tuple[datetime.date | None, int | None]:
+    """The UTC day of the first GPS message with a fix (GWk/GMS; older logs Week/TimeMS), and the
+    offset that turns the log's TimeUS into UTC microseconds there (None, None: the log does not say)."""
     if gnss is None:
-        return None
+        return None, None
     name, offs = gnss
     cols = log.format(name).colhash
     week, ms = ("GWk", "GMS") if "GWk" in cols else ("Week", "TimeMS") if "Week" in cols else (None, None)
     if week is None:
-        return None
-    for _, status, wk, wms in log.rows(name, ["Status", week, ms], offs):
-        if status is not None and wk is not None and status >= 3 and 0 < wk < 10_000:
-            gps = GPS_EPOCH + datetime.timedelta(weeks=wk, milliseconds=wms)
-            return (gps - datetime.timedelta(seconds=LEAP_SECONDS)).date()
-    return None
+        return None, None
+    for t_us, status, wk, wms in log.rows(name, ["Status", week, ms], offs):
+        if status is not None and wk is not None and wms is not None and status >= 3 and 0 < wk < 10_000:
+            utc = GPS_EPOCH + datetime.timedelta(weeks=wk, milliseconds=wms) - datetime.timedelta(seconds=LEAP_SECONDS)
+            return utc.date(), round(utc.timestamp() * 1e6) - int(t_us)
+    return None, None

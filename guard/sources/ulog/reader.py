@@ -53,7 +53,7 @@ class UlogReader(LogSource):
         streams = [s for s in streams if s is not None]
         self.rates_hz = survey.note_streams(sets, streams, imu_key, gps_key, self.notes)
         if gps_key and gps_key[0] in GPS_TOPICS:
-            self.date = survey.utc_date(sets[gps_key])
+            self.date, self.utc_offset_us = survey.utc_date(sets[gps_key])
         return streams
 
     def _stream(self, build, data, *more) -> Stream | None:

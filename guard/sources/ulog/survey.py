@@ -72,10 +72,16 @@ def note_streams(sets: dict, streams: list, imu_key, gps_key, notes: list[str]) 
     return rates_hz
 
 
-def utc_date(data) -> datetime.date | None:
-    """The UTC day of the first GNSS record that knows it (time_utc_usec non-zero)."""
+def utc_date(data) -> tuple[datetime.date | None, int | None]:
+    """The UTC day of the first GNSS record that knows it (time_utc_usec non-zero), and the offset
+    that turns the log's timestamps into UTC microseconds there (None, None: the log does not say)."""
     utc = data.data.get("time_utc_usec")
-    known = utc[(utc > 946_684_800_000_000) & (utc < 4_102_444_800_000_000)] if utc is not None else []
-    if len(known) == 0:
-        return None
-    return datetime.datetime.fromtimestamp(int(known[0]) / 1e6, datetime.timezone.utc).date()
+    if utc is None:
+        return None, None
+    known = (utc > 946_684_800_000_000) & (utc < 4_102_444_800_000_000)
+    if not known.any():
+        return None, None
+    i = int(known.argmax())
+    first = int(utc[i])
+    return (datetime.datetime.fromtimestamp(first / 1e6, datetime.timezone.utc).date(),
+            first - int(data.data["timestamp"][i]))

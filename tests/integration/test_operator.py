@@ -1,0 +1,120 @@
+"""What an operator meets first: `guard config`, the help, `mcap-recover` that keeps its input, a log
+directory the daemon cannot write, and an MCAP log in the flight's own time that keeps its alarms and
+the operator's warnings."""
+
+import datetime
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap.stream_reader import StreamReader
+
+from guard.cli import main
+from guard.config import Config, dump, load, parse
+from guard.errors import ConfigError
+from guard.model.events import Alarm, Estimate
+from guard.runtime.daemon import Daemon
+from guard.sinks.mcap import McapLog
+
+SITL = "ardupilot-sitl/copter_clean_straight.tlog"
+
+
+def test_guard_config_prints_every_key_and_reads_back(tmp_path, capsys):
+    path = tmp_path / "rover.toml"
+    path.write_text('[monitor]\nvehicle = "ground"\n[detector]\nfalse_alarm_interval_h = 2000.0\n')
+    assert main(["config", "--config", str(path), "--connect", "tcp:127.0.0.1:5760"]) == 0
+    out = capsys.readouterr().out
+    assert f"# file: {path}" in out
+    assert "detector.false_alarm_interval_h, monitor.vehicle" in out and "link.connect (--connect)" in out
+    cfg = parse(tomllib.loads(out), "printed")
+    assert cfg.monitor.vehicle == "ground" and cfg.monitor.detector.false_alarm_interval_h == 2000.0
+    assert cfg.link.connect == "tcp:127.0.0.1:5760"
+    # every key is there, the defaults included: the printed file is the whole configuration
+    expected = load(str(path))
+    assert dump(cfg) == dump(Config(link=cfg.link, can=expected.can, log=expected.log, monitor=expected.monitor))
+
+
+def test_verbose_goes_before_or_after_the_command(tmp_path, capsys):
+    assert main(["config", "-v"]) == 0 and main(["-v", "config"]) == 0
+
+
+def test_mcap_recover_never_overwrites_its_input(tmp_path, capsys):
+    log = McapLog(str(tmp_path / "cut.mcap"))
+    log.on_events([Alarm(2_000_000, 3, "gnss_pos", "north", 12.0, 10.0, 9.0, "cusum")])
+    cut = Path(log.path)
+    size = cut.stat().st_size
+    assert main(["mcap-recover", str(cut), str(cut)]) == 1
+    assert "is the log to recover" in capsys.readouterr().err and cut.stat().st_size == size
+    other = tmp_path / "other.mcap"
+    other.write_bytes(b"keep me")
+    assert main(["mcap-recover", str(cut), str(other)]) == 1
+    assert "--force" in capsys.readouterr().err and other.read_bytes() == b"keep me"
+    assert main(["mcap-recover", str(cut), str(other), "--force"]) == 0
+    log.close()
+
+
+def test_an_alarm_is_on_the_disk_at_once(tmp_path):
+    """The chunk holding an alarm is finished and synced when the alarm is written: a kill right after
+    it (the process never closes the log) leaves the alarm readable."""
+    log = McapLog(str(tmp_path / "run.mcap"), chunk_size=1 << 20)
+    for i in range(50):
+        log.on_events([Estimate(1_000_000 + i * 100_000, i, 0.0, 0.0, 0.0, np.zeros(12), np.ones(12),
+                                (47.0, 8.0, 400.0))])
+    log.on_events([Alarm(6_000_000, 50, "gnss_pos", "north", 12.0, 10.0, 9.0, "cusum")])
+    with open(log.path, "rb") as f:            # what another process (or a recovery) finds on the disk
+        topics, channels = [], {}
+        try:
+            for rec in StreamReader(f, skip_magic=False).records:
+                if type(rec).__name__ == "Channel":
+                    channels[rec.id] = rec.topic
+                elif type(rec).__name__ == "Message":
+                    topics.append(channels[rec.channel_id])
+        except Exception:                       # the unfinished file ends mid-record: what came before counts
+            pass
+    assert "/alarms" in topics and topics.count("/estimate/state") == 50
+    log.close()
+
+
+def test_an_unwritable_log_directory_is_an_error_before_the_link_opens(tmp_path):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    daemon = Daemon(Config(), connect="udpin:127.0.0.1:0", mcap=str(blocker / "logs"))
+    with pytest.raises(ConfigError, match="log.mcap"):
+        daemon.startup()
+    assert daemon.source is None                # nothing was opened
+
+
+def test_the_operators_warnings_are_in_the_log(tmp_path):
+    daemon = Daemon(Config(), connect="udpin:127.0.0.1:0")
+    daemon.log = McapLog(str(tmp_path / "run.mcap"))
+    daemon._operator("no IMU data for 5 s: waiting", send=False)
+    daemon._core_notice("a core notice the log has already", send=False)
+    daemon.log.close()
+    with open(tmp_path / "run.mcap", "rb") as f:
+        logs = [message.data for _, _, message in make_reader(f).iter_messages(topics=["/log"])]
+    assert len(logs) == 1 and b"no IMU data for 5 s" in logs[0]
+
+
+def test_a_replayed_log_is_in_the_flights_utc_time(shared, tmp_path):
+    tlog = shared / "data" / SITL
+    if not tlog.exists():
+        pytest.skip(f"{SITL} is not in the shared data")
+    out = tmp_path / "replay.mcap"
+    assert main(["replay", str(tlog), "--mcap", str(out), "--report", str(tmp_path / "r.json")]) == 0
+    first_prefix = int.from_bytes(tlog.read_bytes()[:8], "big")        # the ground station's clock, unix us
+    with open(out, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        start_us = summary.statistics.message_start_time // 1000
+        meta = {m.name: m.metadata for m in reader.iter_metadata()}
+        _, _, state = next(reader.iter_messages(topics=["/estimate/state"]))
+    # the timeline starts at the flight's time (within the log's first seconds), not at 1970
+    assert abs(start_us - first_prefix) < 60e6, (start_us, first_prefix)
+    assert datetime.datetime.fromtimestamp(start_us / 1e6, datetime.timezone.utc).year >= 2020
+    # the vehicle's own time stays in the records; the configuration in effect is stored whole
+    import json
+    t_boot = json.loads(state.data)["t_us"]
+    assert t_boot < 1e12 and state.log_time // 1000 - t_boot > 1e15
+    assert parse(tomllib.loads(meta["guard"]["config_in_effect"]), "meta") == Config()
