@@ -1,6 +1,7 @@
-"""The paper's three panels for one replay: north position estimation error, north measurement
-error (both need the simulator's truth; without it, the estimate and the measurement themselves),
-and the test statistic with its threshold, the alarm and the attack marked."""
+"""The paper's three panels for one replay: position estimation error, measurement error (both need
+the simulator's truth; without it, the estimate and the measurement themselves), on the axis of the
+channel shown, and that channel's test statistic with its threshold; alarms, exclusions, the attack
+and the autopilot's verdicts marked, each in a legend (`plot`)."""
 
 from __future__ import annotations
 
@@ -35,12 +36,41 @@ class Trace(Sink):
                 self.estimate.append((e.t_us, e.east_m, e.north_m))
 
 
+def shown_channel(trace: Trace, report: dict) -> tuple[str, str]:
+    """The (sensor, channel) the figure is about: the first alarm's, where it has a test of its own;
+    else (a freeze, a gyro named by the heading's witnesses, a clean log) the channel that came
+    nearest its threshold."""
+    alarms = report["alarms"]
+    if alarms and (alarms[0]["sensor"], alarms[0]["channel"]) in trace.stats:
+        return alarms[0]["sensor"], alarms[0]["channel"]
+    if not trace.stats:
+        return "gnss_pos", "north"
+    return max(trace.stats, key=lambda k: max((g / h for _, g, h in trace.stats[k] if h > 0), default=0.0))
+
+
+def exclusions(report: dict, t_end_us: int) -> list[tuple[int, int, str]]:
+    """(start, end, sensor) of each time a sensor was out of the filter: from its alarm to its
+    re-admission (or the end of the log)."""
+    out = []
+    for a in report["alarms"]:
+        back = [c["time_usec"] for c in report["cleared"] if c["sensor"] == a["sensor"] and c["time_usec"] >= a["time_usec"]]
+        end = min(back, default=t_end_us)
+        if not any(s == a["sensor"] and s0 <= a["time_usec"] <= e for s0, e, s in out):
+            out.append((a["time_usec"], end, a["sensor"]))
+    return out
+
+
 def plot(trace: Trace, report: dict, out: str, truth: dict | None = None) -> None:
+    """Three panels over time since the first fix: the estimate's error (or the estimate and the GNSS)
+    on the axis of the channel shown, the GNSS's error (or GNSS minus the estimate) on it, and that
+    channel's test statistic against its threshold. Shaded: the attack (the simulator's truth, where
+    it is beside the log), the sensor's exclusion, the autopilot's own EKF verdicts; every mark is in
+    a legend. A log without an alarm shows the channel nearest its threshold and its margin."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(3, 1, figsize=(8, 8), sharex=True)
+    fig, axes = plt.subplots(3, 1, figsize=(9, 8.5), sharex=True)
     if not trace.estimate or trace.origin is None:
         axes[0].set_title("no GNSS fix in this log: nothing to plot")
         fig.savefig(out, dpi=110)
@@ -48,58 +78,86 @@ def plot(trace: Trace, report: dict, out: str, truth: dict | None = None) -> Non
         return
     frame = LocalFrame(*trace.origin)
     t0 = trace.estimate[0][0]
+    key = shown_channel(trace, report)
+    axis = 1 if key[1] != "east" else 0                     # the position axis shown: east or north
+    name = ("east", "north")[axis]
     est = np.array(trace.estimate, dtype=float)
-    t_est, n_est = (est[:, 0] - t0) / 1e6, est[:, 2]
+    t_est, p_est = (est[:, 0] - t0) / 1e6, est[:, 1 + axis]
     meas = np.array([(t, *frame.to_en(lat, lon)) for t, lat, lon in trace.gnss], dtype=float)
-    t_meas, n_meas = (meas[:, 0] - t0) / 1e6, meas[:, 2]
+    t_meas, p_meas = (meas[:, 0] - t0) / 1e6, meas[:, 1 + axis]
     if truth and truth.get("trajectory", {}).get("t_usec"):
         tr = truth["trajectory"]
         t_true = (np.array(tr["t_usec"], dtype=float) - t0) / 1e6
-        n_true = np.array([frame.to_en(a, b)[1] for a, b in zip(tr["lat_deg"], tr["lon_deg"])])
-        axes[0].plot(t_est, n_est - np.interp(t_est, t_true, n_true), lw=0.8)
-        axes[0].set_ylabel("north estimation\nerror (m)")
-        axes[1].plot(t_meas, n_meas - np.interp(t_meas, t_true, n_true), lw=0.8, color="tab:orange")
-        axes[1].set_ylabel("north measurement\nerror (m)")
+        p_true = np.array([frame.to_en(a, b)[axis] for a, b in zip(tr["lat_deg"], tr["lon_deg"])])
+        axes[0].plot(t_est, p_est - np.interp(t_est, t_true, p_true), lw=0.8, label="guard's estimate minus the truth")
+        axes[0].set_ylabel(f"{name} estimation\nerror (m)")
+        axes[1].plot(t_meas, p_meas - np.interp(t_meas, t_true, p_true), lw=0.8, color="tab:orange",
+                     label="GNSS minus the truth")
+        axes[1].set_ylabel(f"{name} measurement\nerror (m)")
     else:
-        axes[0].plot(t_est, n_est, lw=0.8, label="estimate")
-        axes[0].plot(t_meas, n_meas, lw=0.6, label="GNSS")
-        axes[0].legend(loc="best", fontsize=8)
-        axes[0].set_ylabel("north (m)")
-        axes[1].plot(t_meas, n_meas - np.interp(t_meas, t_est, n_est), lw=0.8, color="tab:orange")
-        axes[1].set_ylabel("north GNSS minus\nestimate (m)")
-    alarms = report["alarms"]
-    key = (alarms[0]["sensor"], alarms[0]["channel"]) if alarms else ("gnss_pos", "north")
-    if key not in trace.stats and trace.stats:
-        # an alarm without a test of its own (frozen; a gyro named by the heading witnesses): the channel
-        # that came closest to its threshold
-        key = max(trace.stats, key=lambda k: max(g / h if h > 0 else 0.0 for _, g, h in trace.stats[k]))
+        axes[0].plot(t_est, p_est, lw=0.8, label="guard's estimate")
+        axes[0].plot(t_meas, p_meas, lw=0.6, label="GNSS")
+        axes[0].set_ylabel(f"{name} (m)")
+        axes[1].plot(t_meas, p_meas - np.interp(t_meas, t_est, p_est), lw=0.8, color="tab:orange",
+                     label="GNSS minus the estimate")
+        axes[1].set_ylabel(f"{name} GNSS minus\nestimate (m)")
     series = np.array(trace.stats.get(key, []), dtype=float)
     if len(series):
-        axes[2].plot((series[:, 0] - t0) / 1e6, series[:, 1], lw=0.8, label="statistic")
-        axes[2].plot((series[:, 0] - t0) / 1e6, series[:, 2], lw=0.8, ls="--", color="k", label="threshold")
+        axes[2].plot((series[:, 0] - t0) / 1e6, series[:, 1], lw=0.8, label=f"{report['detector']} statistic")
+        axes[2].plot((series[:, 0] - t0) / 1e6, series[:, 2], lw=0.8, ls="--", color="k",
+                     label="threshold of the test nearest it (CUSUM bank: it steps when the\nsmall-shift and large-shift members take turns)")
+    alarms = report["alarms"]
+    labels = set()
+
+    def once(label: str) -> dict:
+        """A legend entry the first time a kind of mark is drawn."""
+        if label in labels:
+            return {}
+        labels.add(label)
+        return {"label": label}
+
+    t_end = int(max(est[-1, 0], meas[-1, 0] if len(meas) else 0))
+    for start, end, sensor in exclusions(report, t_end):
+        for i, ax in enumerate(axes):
+            ax.axvspan((start - t0) / 1e6, (end - t0) / 1e6, color="tab:red", alpha=0.08,
+                       **(once(f"{sensor} excluded (alarm to re-admission)") if i == 2 else {}))
     for a in alarms:
-        axes[2].axvline((a["time_usec"] - t0) / 1e6, color="r", lw=1.0 if (a["sensor"], a["channel"]) == key else 0.5)
+        mine = (a["sensor"], a["channel"]) == key
+        label = f"guard alarm: {key[0]} {key[1]}" if mine else "guard alarm: another sensor or axis"
+        for i, ax in enumerate(axes):
+            ax.axvline((a["time_usec"] - t0) / 1e6, color="r", lw=1.0 if mine else 0.5,
+                       **(once(label) if i == 2 else {}))
     for a in (truth or {}).get("attacks", []):
-        for ax in axes:
-            ax.axvline((a["start_time_usec"] - t0) / 1e6, color="grey", lw=0.8, ls=":")
+        start = (a["start_time_usec"] - t0) / 1e6
+        end = (t_end - t0) / 1e6 if a["duration_s"] == "end" else start + a["duration_s"]
+        what = "GNSS dropout" if a["kind"] == "dropout" else f"attack: {a['kind']} on {a['sensor']} {a['channel']}"
+        for i, ax in enumerate(axes):
+            ax.axvspan(start, end, color="grey", alpha=0.12, **(once(f"{what} (simulator's truth)") if i == 2 else {}))
     # the autopilot's own verdict, where the log holds it: its EKF's test ratios over 1 (shaded) and
     # its GNSS messages (ticks), beside guard's alarms
-    shown = set()
     for v in report.get("autopilot", []):
         start = (v["time_usec"] - t0) / 1e6
-        label = f"autopilot: {v['source']} {v['test']}" if v.get("end_usec") else "autopilot: GPS message"
-        kw = {"label": label} if label not in shown else {}
-        shown.add(label)
+        label = f"autopilot: {v['source']} {v['test']} over 1" if v.get("end_usec") else "autopilot: GPS message"
         if v.get("end_usec"):
-            axes[2].axvspan(start, max((v["end_usec"] - t0) / 1e6, start + 0.2), color="tab:purple", alpha=0.2, **kw)
+            axes[2].axvspan(start, max((v["end_usec"] - t0) / 1e6, start + 0.2), color="tab:purple", alpha=0.2,
+                            **once(label))
         else:
-            axes[2].axvline(start, color="tab:purple", lw=0.8, ls="-.", **kw)
-    axes[2].set_ylabel(f"{report['detector']} statistic\n{key[0]} {key[1]}")
+            axes[2].axvline(start, color="tab:purple", lw=0.8, ls="-.", **once(label))
+    axes[2].set_ylabel(f"test of {key[0]} {key[1]}")
     axes[2].set_yscale("symlog")
-    axes[2].legend(loc="upper left", fontsize=8)
     axes[2].set_xlabel("time since first fix (s)")
-    first = f"first alarm at GNSS sample {alarms[0]['gnss_index']}" if alarms else "no alarm"
-    fig.suptitle(f"{report['source'].rsplit('/', 1)[-1]}: {first}", fontsize=10)
+    for ax in axes:
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(loc="upper left", fontsize=7, framealpha=0.8)
+    peak = max((g / h for _, g, h in trace.stats.get(key, []) if h > 0), default=None)
+    if alarms:
+        a0 = alarms[0]
+        verdict = (f"{len(alarms)} alarm(s), the first at GNSS sample {a0['gnss_index']} "
+                   f"({a0['sensor']} {a0['channel']})")
+    else:
+        verdict = "no alarm" + (f": the nearest test, {key[0]} {key[1]}, reached {peak:.2f} of its threshold"
+                                if peak is not None else "")
+    fig.suptitle(f"{report['source'].rsplit('/', 1)[-1]}: {verdict}", fontsize=10)
     fig.tight_layout()
     fig.savefig(out, dpi=110)
     plt.close(fig)

@@ -118,3 +118,33 @@ def test_a_replayed_log_is_in_the_flights_utc_time(shared, tmp_path):
     t_boot = json.loads(state.data)["t_us"]
     assert t_boot < 1e12 and state.log_time // 1000 - t_boot > 1e15
     assert parse(tomllib.loads(meta["guard"]["config_in_effect"]), "meta") == Config()
+
+
+def test_the_figure_shows_the_alarmed_axis_and_explains_every_mark(tmp_path, monkeypatch):
+    """An east step: the figure is about GNSS position east (not north, as it once always was), its
+    attack and the exclusion are shaded, and every kind of mark has a legend entry."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from guard.runtime.replay import replay, truth_beside
+    from guard.sinks import plot as figure
+    import dataclasses
+    from sim import scenario as scenarios
+    from sim.run import run
+    from sim.scenario import Attack
+    sc = dataclasses.replace(scenarios.load("clean"), duration_s=45.0,
+                             attacks=(Attack("step", "gnss_pos", "east", 10.0, 25.0),))
+    tlog = tmp_path / "east.tlog"
+    run(sc, 3, tlog=str(tlog))
+    trace = figure.Trace()
+    report = replay(str(tlog), listeners=[trace])
+    assert report["alarms"] and report["alarms"][0]["channel"] == "east"
+    assert figure.shown_channel(trace, report) == ("gnss_pos", "east")
+    saved = {}
+    monkeypatch.setattr(plt.Figure, "savefig", lambda fig, out, **kw: saved.setdefault("fig", fig))
+    figure.plot(trace, report, str(tmp_path / "east.png"), truth_beside(str(tlog)))
+    axes = saved["fig"].axes
+    assert axes[0].get_ylabel().startswith("east") and "gnss_pos east" in axes[2].get_ylabel()
+    labels = axes[2].get_legend_handles_labels()[1]
+    for kind in ("statistic", "threshold", "excluded", "guard alarm", "attack: step on gnss_pos east"):
+        assert any(kind in label for label in labels), (kind, labels)
