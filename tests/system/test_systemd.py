@@ -83,8 +83,23 @@ def test_unit_has_the_key_settings():
     assert int(service["TimeoutStopSec"]) > 0
     assert "network-online.target" in unit["Unit"]["After"][-1].split()
     assert unit["Install"]["WantedBy"] == ["multi-user.target"]
-    # Settings that would hide the serial port must stay out (see the unit's comments).
-    assert not {"PrivateDevices", "DevicePolicy", "DeviceAllow", "ProtectClock"} & service.keys()
+    # The serial ports stay reachable (see the unit's comments): no PrivateDevices=, and the device
+    # allow-list names every kind of port a flight controller appears as.
+    assert "PrivateDevices" not in service
+    assert service["DevicePolicy"] == "closed"
+    assert {"char-ttyACM rw", "char-ttyUSB rw", "char-ttyAMA rw", "char-ttyS rw"} <= set(unit["Service"]["DeviceAllow"])
+
+
+@needs_systemd_analyze
+def test_the_units_exposure_is_low(tmp_path):
+    """`systemd-analyze security` on the unit as installed: at most 2.0 of 10 ("OK"; README)."""
+    out = subprocess.run([SYSTEMD_ANALYZE, "security", "--offline=true", str(copy_for_verify(tmp_path))],
+                         capture_output=True, text=True, timeout=60)
+    if "--offline" in out.stderr and out.returncode != 0:
+        pytest.skip(f"this systemd-analyze cannot check offline: {out.stderr.strip()[:80]}")
+    level = [line for line in out.stdout.splitlines() if "Overall exposure level" in line]
+    assert level, out.stdout[-500:] + out.stderr[-500:]
+    assert float(level[0].split(":")[1].split()[0]) <= 2.0, level[0]
 
 
 @needs_systemd_analyze
