@@ -701,16 +701,21 @@ def test_a_link_without_the_imu_stream_says_so(caplog):
     names the missing stream, and only it."""
     enc, items = scenario_messages("paper", until_s=3)
     gps = [it for it in items if it[1].get_type() == "GPS_RAW_INT"]
+    sent = []
     with in_process({"link": {"link_timeout_s": 0.5}}) as g:
         peer = g.connect()
         for buf, _ in frames(enc, gps[:20]):
             peer.write(buf)
+            sent.append(time.monotonic())
             time.sleep(0.1)
         got = drain(peer)
         assert g.d.samples >= 15, "the fixes reached the daemon"
     warnings = texts(got, WARNING)
     assert any("no IMU data for 0.5 s" in t for t in warnings), texts(got)
-    assert not any("GNSS" in t for t in warnings), warnings
+    # a loaded machine may hold this test's sender back past the timeout: the daemon is then right to
+    # say the GNSS fell silent too; only when every fix went out in time must the warning spare it
+    if max(b - a for a, b in zip(sent, sent[1:])) < 0.35:
+        assert not any("GNSS" in t for t in warnings), warnings
 
 
 def test_a_long_warning_reaches_the_ground_station_whole():
