@@ -1,0 +1,59 @@
+"""The steady suite: the whole test suite, N times in a row on a fresh clone, stopping at the first failure.
+
+    python tools/steady.py --runs 20                 # 20 full runs of HEAD (about 12 minutes each on 2 cores)
+    python tools/steady.py --runs 5 -- tests/unit    # pytest arguments after --
+
+A flaky test blocks landings at random; this finds one before CI does. The clone is of the commit
+checked out (uncommitted changes are not in it), installed once with the README's test command
+(`make install-test`), then `python -m pytest` is run N times with the same arguments. Each run's
+outcome and time is printed as it ends, and the summary names the failing run's first failures;
+the exit status is that of the first failing run (0 if none failed).
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--runs", type=int, default=20, help="how many runs in a row (default: 20)")
+    p.add_argument("--keep", action="store_true", help="keep the clone (its path is printed)")
+    p.add_argument("pytest_args", nargs="*", help="arguments for pytest, after --")
+    args = p.parse_args(argv)
+    work = Path(tempfile.mkdtemp(prefix="guard-steady-"))
+    clone = work / "guard"
+    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
+                          check=True).stdout.strip()
+    subprocess.run(["git", "clone", "--quiet", str(ROOT), str(clone)], check=True)
+    print(f"steady: {args.runs} runs of {head} in {clone}", flush=True)
+    subprocess.run(["make", "install-test"], cwd=clone, check=True)
+    python = clone / ".venv" / "bin" / "python"
+    times = []
+    for i in range(1, args.runs + 1):
+        start = time.monotonic()
+        run = subprocess.run([str(python), "-m", "pytest", "-q", "-p", "no:cacheprovider", *args.pytest_args],
+                             cwd=clone, capture_output=True, text=True)
+        times.append(time.monotonic() - start)
+        tail = run.stdout.strip().splitlines()[-1] if run.stdout.strip() else run.stderr.strip()[-200:]
+        print(f"run {i}/{args.runs}: exit {run.returncode} in {times[-1] / 60:.1f} min: {tail}", flush=True)
+        if run.returncode != 0:
+            failed = [line for line in run.stdout.splitlines() if line.startswith(("FAILED", "ERROR"))]
+            print("\n".join(failed[:20]) or run.stdout[-3000:], flush=True)
+            print(f"steady: run {i} of {args.runs} failed; {i - 1} passed before it")
+            return run.returncode
+    print(f"steady: {args.runs} of {args.runs} runs passed ({min(times) / 60:.1f} to {max(times) / 60:.1f} min each)")
+    if not args.keep:
+        subprocess.run(["rm", "-rf", str(work)], check=False)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
