@@ -12,8 +12,13 @@ $(BIN)/python:
 install: $(BIN)/python
 	$(BIN)/python -m pip install --quiet -e .
 
+# MAVProxy (tests/system/test_mavproxy.py routes through it) without its GUI dependencies (vtk,
+# opencv, wxPython: hundreds of MB a headless router does not use); its light ones are in [test].
+MAVPROXY := MAVProxy==1.8.75
+
 install-test: $(BIN)/python
 	$(BIN)/python -m pip install --quiet -e '.[test]'
+	$(BIN)/python -m pip install --quiet --no-deps '$(MAVPROXY)'
 
 demo: install
 	$(BIN)/guard demo

@@ -88,8 +88,8 @@ def _config(args) -> int:
 
 
 def _sim(args) -> int:
-    from sim import scenario
-    from sim.run import run
+    from guard_sim import scenario
+    from guard_sim.run import run
     try:
         sc = scenario.load(args.scenario)
     except scenario.ScenarioError as e:
@@ -98,7 +98,7 @@ def _sim(args) -> int:
         raise GuardError("guard sim: give --tlog FILE, --bin FILE, --ulg FILE, --out URL or --can URL")
     can = None
     if args.can:
-        from sim.canbus import CanPublisher
+        from guard_sim.canbus import CanPublisher
         try:
             can = CanPublisher(args.can)
         except Exception as e:      # python-can raises many kinds
@@ -191,9 +191,9 @@ def parser() -> argparse.ArgumentParser:
                 description="Read GPS_RAW_INT, RAW_IMU and ATTITUDE from a live MAVLink link (or DroneCAN), "
                 "run the detector, send the alarms back as STATUSTEXT and log to MCAP.",
                 epilog=RUN_EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
-    r.add_argument("--connect", help="pymavlink URL (udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, "
-                   "DEVICE,BAUD) or can:INTERFACE:CHANNEL; default: link.connect of the config "
-                   "(udpin:0.0.0.0:14550)")
+    r.add_argument("--connect", help="udpin:HOST:PORT, udpout:HOST:PORT, udpbcast:ADDRESS:PORT, tcp:HOST:PORT, "
+                   "tcpin:HOST:PORT, a serial DEVICE[,BAUD] (default 115200 baud) or can:INTERFACE:CHANNEL; "
+                   "default: link.connect of the config (udpin:0.0.0.0:14550)")
     r.add_argument("--config", help=f"TOML config file; default: {DEFAULT_CONFIG} if it exists, else the built-in "
                    "defaults (guard config prints them)")
     r.add_argument("--mcap", help="MCAP log file or directory; default: log.mcap of the config (none)")
@@ -232,7 +232,8 @@ def parser() -> argparse.ArgumentParser:
     r.set_defaults(func=_tune)
 
     r = command("sim", help="the simulator: a vehicle speaking MAVLink (and DroneCAN)")
-    r.add_argument("--scenario", default="paper", help="scenario name (configs/scenarios/) or TOML file")
+    r.add_argument("--scenario", default="paper", help="a shipped scenario (paper, clean, step_east, ramp_north, gyro_bias, accel_bias, "
+                   "freeze, spoof) or a scenario TOML file")
     r.add_argument("--seed", type=int, default=1, help="the simulator's random seed (noise, attack phases)")
     r.add_argument("--tlog", help="write a tlog (and NAME.truth.json beside it)")
     r.add_argument("--bin", help="write the run as an ArduPilot DataFlash log too (and its truth beside it)")

@@ -32,6 +32,9 @@ class LinkConfig:
     link_timeout_s: float = 5.0             # warn when no GNSS or IMU message came for this long
     signing_key_file: str = ""              # MAVLink 2 signing: a file holding 32 bytes (or 64 hex digits)
     require_signed: bool = False            # with a key: reject unsigned incoming frames
+    gcs: str = ""                           # a second link guard's STATUSTEXT, HEARTBEAT and grd_ratio go to as
+                                            # well (udpout:HOST:PORT): a ground station behind a router that
+                                            # forwards them only to the autopilot (MAVProxy); "" none
 
 
 @dataclass(frozen=True)

@@ -158,12 +158,12 @@ class Simulation:
 
 # log formats the simulator writes besides tlog: keyword -> (module, writer class); each writer takes
 # the simulator's MAVLink messages, send(t_us, msg), and writes them in its own format, then close()
-LOG_WRITERS = {"bin": ("sim.dataflash", "DataFlashWriter"), "ulg": ("sim.ulog", "UlogWriter")}
+LOG_WRITERS = {"bin": (".dataflash", "DataFlashWriter"), "ulg": (".ulog", "UlogWriter")}
 
 
 def _log_writer(kind: str, path: str):
     module, cls = LOG_WRITERS[kind]
-    return getattr(importlib.import_module(module), cls)(path)
+    return getattr(importlib.import_module(module, __package__), cls)(path)
 
 
 def run(scenario: Scenario, seed: int, *, tlog: str | None = None, out: str | None = None,
@@ -175,7 +175,7 @@ def run(scenario: Scenario, seed: int, *, tlog: str | None = None, out: str | No
     `tlog` writes a tlog, `bin` an ArduPilot DataFlash log, `ulg` a PX4 ULog (any of them, the same
     run), `out` sends live MAVLink, `can` publishes DroneCAN; live output (MAVLink or
     CAN) is paced at `speedup` times real time unless `fast`; a tlog alone is written at once. `on_statustext(msg)` is called for every STATUSTEXT received on `out`.
-    `can` is an object with send_gnss/send_imu/send_mag (sim.canbus.CanPublisher) or None.
+    `can` is an object with send_gnss/send_imu/send_mag (guard_sim.canbus.CanPublisher) or None.
     """
     sim = Simulation(scenario, seed)
     writers = [TlogWriter(tlog, sim.encoder)] if tlog else []

@@ -1,4 +1,5 @@
-"""Scenario files: TOML under configs/scenarios/, validated into frozen dataclasses.
+"""Scenario files: TOML under configs/scenarios/ (installed as the package data of guard_sim.scenarios),
+validated into frozen dataclasses.
 
 A scenario names the route, the sensor rates, the noise of each sensor (1-sigma, in SI units) and
 the attacks. Unknown keys, wrong types and impossible values are errors that name the file and key.
@@ -9,9 +10,11 @@ from __future__ import annotations
 import math
 import tomllib
 from dataclasses import dataclass, field, fields
+from importlib import resources
 from pathlib import Path
 
-SCENARIO_DIR = Path(__file__).resolve().parent.parent / "configs" / "scenarios"
+# the shipped scenarios, wherever the package is installed (configs/scenarios/ in the repository)
+SCENARIO_DIR = resources.files(f"{__package__}.scenarios")
 
 ATTACK_KINDS = {
     "step": "adds `magnitude` from start_s on",
@@ -245,12 +248,12 @@ def parse(data: dict, where: str) -> Scenario:
 
 
 def load(name_or_path: str) -> Scenario:
-    """Load a scenario by name (a file in configs/scenarios/) or by path."""
+    """Load a scenario by name (one of names(), shipped with the simulator) or by path."""
     path = Path(name_or_path)
     if not path.suffix:
         path = SCENARIO_DIR / f"{name_or_path}.toml"
     if not path.is_file():
-        known = ", ".join(sorted(p.stem for p in SCENARIO_DIR.glob("*.toml")))
+        known = ", ".join(names())
         raise ScenarioError(f"unknown scenario {name_or_path!r} (no file {path}; known: {known})")
     try:
         data = tomllib.loads(path.read_text())
@@ -260,4 +263,5 @@ def load(name_or_path: str) -> Scenario:
 
 
 def names() -> list[str]:
-    return sorted(p.stem for p in SCENARIO_DIR.glob("*.toml"))
+    """The shipped scenarios' names."""
+    return sorted(p.name.removesuffix(".toml") for p in SCENARIO_DIR.iterdir() if p.name.endswith(".toml"))

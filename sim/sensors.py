@@ -6,7 +6,7 @@ accelerometer measures specific force (-g on z at rest), the gyro the body rate,
 and a constant bias. Magnetometer: the World Magnetic Model's field at the start, rotated into the
 body frame by the vehicle's heading, plus white noise.
 
-A vehicle's own sensors (sim.scenario.Noise): the IMU may be mounted yawed (`imu_yaw_mount_deg`) and
+A vehicle's own sensors (guard_sim.scenario.Noise): the IMU may be mounted yawed (`imu_yaw_mount_deg`) and
 read high or low (`accel_scale`, `gyro_scale`); the compass may be yawed (`mag_offset_deg`). The
 true vector in body axes is turned into the sensor's axes first, then scaled, then bias and noise
 are added: y = (1 + scale) R_z(a)^T x + b + w.

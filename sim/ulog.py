@@ -4,7 +4,7 @@ Topics (field names, units and frames of PX4's msg/*.msg):
 - `sensor_gps` (the newer layout): latitude_deg/longitude_deg (float64, from GPS_RAW_INT's degE7),
   altitude_msl_m, vel_n_m_s/vel_e_m_s (float32, from its speed and course over ground), eph m and
   s_variance_m_s m/s (1-sigma, from h_acc and vel_acc; -1 when unknown), hdop/vdop (its eph/epv DOP x 100),
-  fix_type, time_utc_usec = sim.mavout.TLOG_EPOCH_US + time (the day a tlog of the same run says).
+  fix_type, time_utc_usec = guard_sim.mavout.TLOG_EPOCH_US + time (the day a tlog of the same run says).
 - `sensor_combined`: gyro_rad rad/s and accelerometer_m_s2 m/s^2 (float32, from RAW_IMU's mrad/s and
   mG), body FRD; `vehicle_magnetometer`: magnetometer_ga gauss (from its mGauss), when it has one.
 - `vehicle_status`: at every autopilot HEARTBEAT, system_type = its MAV_TYPE, and PX4's

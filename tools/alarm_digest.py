@@ -21,8 +21,8 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from guard.runtime.replay import replay               # noqa: E402
-from sim import scenario as scenarios                  # noqa: E402
-from sim.run import run                                # noqa: E402
+from guard_sim import scenario as scenarios                  # noqa: E402
+from guard_sim.run import run                                # noqa: E402
 from tools.evaluation.cases import ALL_FAMILIES, base_scenario, cases, detector_config, phased, sim_seed   # noqa: E402
 
 DETECTORS = ("cusum", "gate", "chi2", "paper")

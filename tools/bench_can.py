@@ -28,9 +28,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 import can                                       # noqa: E402
 
 from guard.sources.can import CanSource                  # noqa: E402
-from sim import scenario                         # noqa: E402
-from sim.canbus import CanPublisher              # noqa: E402
-from sim.run import run                          # noqa: E402
+from guard_sim import scenario                         # noqa: E402
+from guard_sim.canbus import CanPublisher              # noqa: E402
+from guard_sim.run import run                          # noqa: E402
 
 
 def channel_url() -> str:

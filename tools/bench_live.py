@@ -34,9 +34,9 @@ os.environ.setdefault("MAVLINK20", "1")
 
 from pymavlink import mavutil                    # noqa: E402
 
-from sim import scenario                         # noqa: E402
-from sim.run import Simulation                   # noqa: E402
-from sim.scenario import Attack                  # noqa: E402
+from guard_sim import scenario                         # noqa: E402
+from guard_sim.run import Simulation                   # noqa: E402
+from guard_sim.scenario import Attack                  # noqa: E402
 
 
 def free_port() -> int:

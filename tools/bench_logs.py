@@ -37,8 +37,8 @@ from pyulog import ULog                          # noqa: E402
 from guard.sources import log_format, open_log   # noqa: E402
 from guard.sources.ulog.load import TOPICS       # noqa: E402
 from guard.runtime.replay import replay          # noqa: E402
-from sim import scenario                         # noqa: E402
-from sim.run import run                          # noqa: E402
+from guard_sim import scenario                         # noqa: E402
+from guard_sim.run import run                          # noqa: E402
 
 # the DataFlash types guard decodes: samples (IMU, GPS, GPA, MAG, ATT), the vehicle (MSG, VER) and
 # the autopilot's verdicts (MSG, ERR, the EKF innovation test ratios XKF4/NKF4/EKF4)

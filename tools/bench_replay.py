@@ -27,8 +27,8 @@ from pymavlink import mavutil                    # noqa: E402
 from guard.core import monitor as core, ekf                      # noqa: E402
 from guard.sources.tlog import TlogReader, tlog_samples   # noqa: E402
 from guard.runtime.replay import replay                  # noqa: E402
-from sim import scenario                         # noqa: E402
-from sim.run import run                          # noqa: E402
+from guard_sim import scenario                         # noqa: E402
+from guard_sim.run import run                          # noqa: E402
 
 
 def make_tlog(path: str, minutes: float) -> None:

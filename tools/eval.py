@@ -60,7 +60,7 @@ from tools.evaluation.cases import (ALL_FAMILIES, START_S, cases, detector_confi
 from tools.evaluation.figure import figure       # noqa: E402
 from tools.evaluation.runs import PARTIAL, Collector, campaign, one   # noqa: E402,F401
 from tools.evaluation.summary import extrapolate, plots, read_runs, summarise   # noqa: E402,F401
-from sim.scenario import Attack                  # noqa: E402,F401 (the cases are built of these)
+from guard_sim.scenario import Attack                  # noqa: E402,F401 (the cases are built of these)
 
 
 def main(argv=None) -> int:

@@ -22,7 +22,7 @@ from guard.core.monitor import Monitor
 from guard.errors import ConfigError, SourceError
 from guard.model.samples import GnssFix, ImuSample
 from guard.sources.link import MavlinkLink
-from guard.sources.live import open_link
+from guard.sources.live import check_url, open_link
 from guard.runtime.pump import Pump
 from guard.runtime.sdnotify import Notifier
 from guard.sinks.mcap import McapLog
@@ -51,6 +51,19 @@ class WallClock:
         offset = time.time_ns() // 1000 - t_us
         if self.utc_offset_us is None or abs(offset - self.utc_offset_us) > self.RESYNC_US:
             self.utc_offset_us = offset
+
+
+class Fanout:
+    """The links guard's own messages go out on: the one it reads (its peer) and link.gcs."""
+
+    def __init__(self, links):
+        self.links = [link for link in links if link is not None]
+        # what the sink counts (rate-limited texts) goes with the main link's counts
+        self.skipped = self.links[0].skipped if self.links else Counter()
+
+    def send(self, fn) -> None:
+        for link in self.links:
+            link.send(fn)
 
 
 def writable(path: str) -> None:
@@ -87,6 +100,7 @@ class Daemon:
         self.should_exit = False
         self.source = None
         self.link: MavlinkLink | None = None
+        self.gcs: MavlinkLink | None = None         # link.gcs: where guard's messages go as well
         self.log: McapLog | None = None
         self.status = StatusText(None, cfg.link, out, self._core_notice)
         self.clock = WallClock()
@@ -118,7 +132,12 @@ class Daemon:
         if isinstance(self.source, MavlinkLink):
             self.link = self.source
         elif link_cfg.connect and not link_cfg.connect.startswith("can:"):
+            check_url(link_cfg.connect)
             self.link = MavlinkLink(link_cfg.connect, link_cfg)     # alarms still go out on MAVLink
+        if link_cfg.gcs:            # a ground station the router in between does not forward guard's messages to
+            if check_url(link_cfg.gcs) == "can":
+                raise ConfigError(f"link.gcs: {link_cfg.gcs}: expected a MAVLink URL such as udpout:HOST:PORT")
+            self.gcs = MavlinkLink(link_cfg.gcs, link_cfg)
         if self.mcap_path:
             c = self.cfg.log
             self.log = McapLog(self.mcap_path, rotate_mb=c.rotate_mb or None, rotate_s=c.rotate_s or None,
@@ -127,7 +146,7 @@ class Daemon:
                                metadata={"config": self.cfg.source_text, "config_in_effect": dump(self.cfg),
                                          "connect": self.connect}, clock=self.clock)
             self.pump.sinks.append(self.log)
-        self.status = StatusText(self.link, link_cfg, self.out, self._core_notice)
+        self.status = StatusText(Fanout([self.link, self.gcs]), link_cfg, self.out, self._core_notice)
         self.pump.sinks.append(self.status)
         self.out(f"guard: listening on {self.connect}" + (f", logging to {self.mcap_path}" if self.log else ""))
         self.started = True
@@ -203,7 +222,7 @@ class Daemon:
 
     def summary(self) -> str:
         skipped = Counter(self.monitor.skipped)
-        for part in {id(p): p for p in (self.source, self.link) if p is not None}.values():
+        for part in {id(p): p for p in (self.source, self.link, self.gcs) if p is not None}.values():
             skipped.update(getattr(part, "skipped", None) or getattr(part, "stats", None) or {})
         skipped = {k: v for k, v in sorted(skipped.items()) if v}
         lost = f", MCAP errors {self.log.errors} ({self.log.lost_messages} messages lost)" if self.log and \
@@ -218,7 +237,7 @@ class Daemon:
             self.log.close()
             if self.log.errors:
                 log.error("MCAP log: %d write errors, %d messages lost", self.log.errors, self.log.lost_messages)
-        for part in {id(p): p for p in (self.source, self.link) if p is not None}.values():
+        for part in {id(p): p for p in (self.source, self.link, self.gcs) if p is not None}.values():
             try:
                 part.close()
             except (OSError, SourceError) as e:

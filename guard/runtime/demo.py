@@ -41,8 +41,8 @@ def verdict(truth: dict, received: list[tuple[int, str]]) -> str:
 
 
 def demo(scenario_name: str, seed: int, speedup: float) -> int:
-    from sim import scenario
-    from sim.run import run
+    from guard_sim import scenario
+    from guard_sim.run import run
     try:
         sc = scenario.load(scenario_name)
     except scenario.ScenarioError as e:

@@ -122,8 +122,8 @@ def split(data: bytes, final: bool = True) -> Split:
         if j > i:
             bad += 1
         return Split(frames, bad, 0, j)
-    if incomplete is not None:
-        bad += incomplete > i
+    if incomplete is not None:          # bad bytes, if any, then the frame the datagram cut off
+        bad += 1 if incomplete > i else 0
         partial = 1
     elif i < n:
         bad += 1

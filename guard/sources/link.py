@@ -1,16 +1,38 @@
 """The live MAVLink link: a source of samples, and the connection the STATUSTEXT sink sends on
 (`guard.sinks.statustext`).
 
-Any pymavlink connection URL (`udpin:0.0.0.0:14550`, `udpout:127.0.0.1:14550`, `tcp:host:5760`,
+Any pymavlink connection URL (`udpin:0.0.0.0:14550`, `udpout:127.0.0.1:14550`, `udpbcast:`, `tcp:host:5760`,
 `/dev/ttyACM0,57600`). Only the autopilot's system id is read (`link.system_id`, 0 for any); our
-own frames (component 191) are ignored. Malformed frames and frames with a bad CRC are counted
-in `skipped` and dropped; so are unsigned or wrongly signed frames when signing is required.
+own frames (component 191) are ignored. The link may be hostile; what it does about that:
+
+- **Framing** (`guard.sources.framing`). pymavlink opens the connection, packs what we send and decodes
+  fields; finding frames is ours. On UDP each datagram is parsed on its own: a frame cut off at the
+  end of a datagram is dropped (`skipped["partial_frame"]`), never joined with the next datagram, so
+  fragments from two senders cannot make a frame. A failed frame start (a stray 0xFD, a bad CRC)
+  is skipped by one byte, not by the length it claims, so it costs no valid frame after it. TCP
+  and serial are a stream: an incomplete frame is kept (under 280 bytes) until the next read.
+- **Signing before state.** With a key, a frame's signature and time stamp are checked
+  (`framing.verify`) before pymavlink sees it: pymavlink records a stream's time stamp before it
+  checks the signature, so one forged frame stamped 2^48 - 2 would make it drop every genuine one.
+  A wrongly signed or replayed frame is dropped even when unsigned ones are allowed.
+- **One peer.** pymavlink's udpin remembers every source address and sends to all of them. Here we
+  read the UDP socket ourselves and keep one address: the peer, the sender of the first valid
+  frame (CRC, signature, system id) from the autopilot. Frames from other addresses are dropped
+  (`skipped["other_address"]`) until the peer has been silent for `link.link_timeout_s`; then the
+  next valid autopilot frame names the new peer (an autopilot that restarted on a new port). What
+  we send goes to the peer only (udpin: nothing until one is heard, `skipped["send_no_peer"]`;
+  udpbcast: the broadcast address until then; udpout: always the address in the URL).
+- **Counted, logged sparingly.** Every dropped frame is counted in `skipped` by reason; a reason
+  is logged at most once per LOG_EVERY_S, with the count since its last line.
 """
 
 from __future__ import annotations
 
+import errno
 import logging
+import math
 import os
+import socket
 import time
 from collections import Counter, deque
 
@@ -20,12 +42,16 @@ from pymavlink import mavutil                                   # noqa: E402
 from pymavlink.dialects.v20 import ardupilotmega as mavlink     # noqa: E402
 
 from guard.errors import ConfigError, SourceError   # noqa: E402
-from guard.sources.mavlink import to_sample                 # noqa: E402
+from guard.sources import framing                   # noqa: E402
+from guard.sources.mavlink import to_sample         # noqa: E402
 
 log = logging.getLogger(__name__)
 
 COMPONENT_ID = mavlink.MAV_COMP_ID_ONBOARD_COMPUTER     # 191
 WANTED = {"GPS_RAW_INT", "RAW_IMU", "ATTITUDE", "HEARTBEAT"}
+LOG_EVERY_S = 10.0              # at most one log line per skip reason this often
+UDP_MAX = 65535
+WARN_REASONS = {"bad_signature", "other_address"}     # signs of an attack: WARNING, the rest INFO
 
 
 def read_key(path: str) -> bytes:
@@ -45,11 +71,83 @@ def read_key(path: str) -> bytes:
     raise ConfigError(f"link.signing_key_file: {path}: expected 32 bytes or 64 hex digits")
 
 
+class SkipLog:
+    """Counts skips by reason into `skipped`, and logs a reason at most once per `every_s`: the
+    first at once, then the count since the last line."""
+
+    def __init__(self, skipped: Counter, every_s: float = LOG_EVERY_S, clock=time.monotonic):
+        self.skipped, self.every_s, self.clock = skipped, every_s, clock
+        self._unlogged: Counter[str] = Counter()
+        self._last: dict[str, float] = {}           # one entry per reason: a fixed set
+        self._detail: dict[str, str] = {}
+
+    def __call__(self, reason: str, n: int = 1, detail: str = "") -> None:
+        self.skipped[reason] += n
+        self._unlogged[reason] += n
+        if detail:
+            self._detail[reason] = detail
+        now = self.clock()
+        if now - self._last.get(reason, -math.inf) >= self.every_s:
+            self._emit(reason, now)
+
+    def flush(self) -> None:
+        """Log what was counted since each reason's last line."""
+        now = self.clock()
+        for reason in [r for r, n in self._unlogged.items() if n]:
+            self._emit(reason, now)
+
+    def _emit(self, reason: str, now: float) -> None:
+        n = self._unlogged.pop(reason)
+        since = now - self._last[reason] if reason in self._last else None
+        self._last[reason] = now
+        detail = self._detail.pop(reason, "")
+        level = logging.WARNING if reason in WARN_REASONS else logging.INFO
+        log.log(level, "MAVLink link: skipped %d %s%s%s", n, reason,
+                f" in the last {since:.0f} s" if since is not None else "", f" (last: {detail})" if detail else "")
+
+
+class _NoPeer(OSError):
+    pass
+
+
+class _UdpOut:
+    """pymavlink's `file` for what we send on a UDP link: each frame one datagram, to `to` alone."""
+
+    def __init__(self, sock: socket.socket, to=None):
+        self.sock, self.to = sock, to
+
+    def write(self, buf) -> None:
+        if self.to is None:
+            raise _NoPeer("no peer heard yet")
+        self.sock.sendto(buf, self.to)
+
+
+def refuse_taken_port(url: str) -> None:
+    """A SourceError when a udpin port is bound already (another guard, a router on the same port).
+    pymavlink binds with SO_REUSEADDR, with which Linux lets a second program bind the same UDP port
+    and take its traffic silently; a plain bind, tried and released first, cannot."""
+    scheme, _, rest = url.partition(":")
+    host, _, port = rest.rpartition(":")
+    if scheme != "udpin" or not port.isdigit() or int(port) == 0:
+        return
+    probe = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        probe.bind((host or "0.0.0.0", int(port)))
+    except OSError as e:
+        if e.errno == errno.EADDRINUSE:
+            raise SourceError(f"cannot open MAVLink link {url}: UDP port {port} is in use by another program "
+                              "(another guard, or a router listening on it); stop it or pick another port") from None
+    finally:
+        probe.close()
+
+
 class MavlinkLink:
     def __init__(self, url: str, cfg):
         self.cfg = cfg
         self.system_id = cfg.system_id
         self.skipped: Counter[str] = Counter()
+        self.skip = SkipLog(self.skipped)
+        refuse_taken_port(url)
         try:
             self.conn = mavutil.mavlink_connection(url, source_system=cfg.system_id or 1,
                                                    source_component=COMPONENT_ID, dialect="ardupilotmega",
@@ -60,14 +158,31 @@ class MavlinkLink:
             allow = None if cfg.require_signed else (lambda mav, msg_id: True)
             self.conn.setup_signing(read_key(cfg.signing_key_file), sign_outgoing=True,
                                     allow_unsigned_callback=allow)
+        self.udp = isinstance(self.conn, mavutil.mavudp)
+        self.datagrams = self.udp or isinstance(self.conn, mavutil.mavmcast)
+        self.peer = None                    # UDP: the autopilot's address, once heard
+        self._peer_heard = -math.inf
+        self._out = None
+        self._follow_peer = False           # udpin and udpbcast answer the peer; udpout its own address
+        if self.udp:
+            self._follow_peer = self.conn.udp_server or self.conn.broadcast
+            self._out = _UdpOut(self.conn.port, self._first_destination(url))
+            self.conn.mav.file = self._out      # pymavlink's write would send to every address seen
+        self._tail = b""                    # a stream's incomplete frame
         self._pending: deque = deque()
 
-    def poll(self, timeout: float):
-        """The next sample from the autopilot, or None after `timeout` seconds without one.
+    def _first_destination(self, url: str):
+        """Where a UDP link sends before a peer is heard: udpout's and udpbcast's address, udpin's none."""
+        if self.conn.udp_server:
+            return None
+        host, port = self.conn.destination_addr
+        try:
+            return socket.gethostbyname(host), port
+        except OSError as e:
+            raise SourceError(f"cannot open MAVLink link {url}: {e}") from None
 
-        Reads what the link has and parses it with the link's MAVLink parser (pymavlink's
-        recv_match would also copy every message into its per-system state, which we do not use).
-        """
+    def poll(self, timeout: float):
+        """The next sample from the autopilot, or None after `timeout` seconds without one."""
         deadline = time.monotonic() + timeout
         while True:
             while self._pending:
@@ -78,44 +193,101 @@ class MavlinkLink:
             if remaining <= 0:
                 return None
             try:
-                data = self.conn.recv()
-                if not data:
+                if not self._read():
                     self.conn.select(min(remaining, 0.05))
-                    continue
-                self._pending.extend(self.conn.mav.parse_buffer(data) or ())
-            except mavlink.MAVError as e:     # with robust parsing this is rare: a frame it cannot split
-                self.skipped["bad_frame"] += 1
-                log.debug("receive error: %s", e)
             except OSError as e:
                 log.debug("receive error: %s", e)
                 time.sleep(min(remaining, 0.05))
 
-    def _take(self, msg):
-        """A parsed message to a sample, or None (counted when skipped)."""
-        name = msg.get_type()
-        if name == "BAD_DATA":
-            reason = getattr(msg, "reason", "")
-            self.skipped["bad_signature" if "signature" in reason.lower() else "bad_frame"] += 1
+    def _read(self) -> bool:
+        """Read one datagram (UDP) or what the stream has, and queue its accepted messages; False when
+        there was nothing to read."""
+        addr = None
+        if self.udp:
+            try:
+                data, addr = self.conn.port.recvfrom(UDP_MAX)
+            except (BlockingIOError, InterruptedError, ConnectionRefusedError):    # refused: udpout's ICMP
+                return False
+        else:
+            data = self.conn.recv()
+            if not data:
+                return False
+        if self.datagrams:
+            found = framing.split(data, final=True)
+        else:
+            data = self._tail + data
+            found = framing.split(data, final=False)
+            self._tail = data[found.rest:]
+        if found.bad:
+            self.skip("bad_frame", found.bad)
+        if found.partial:
+            self.skip("partial_frame", found.partial)
+        for frame in found.frames:
+            msg = self._accept(frame, addr)
+            if msg is not None:
+                self._pending.append(msg)
+        return True
+
+    def _accept(self, frame: framing.Frame, addr):
+        """The decoded message of a CRC-checked frame from `addr` (None: a stream), or None (counted).
+
+        Signature first: nothing of pymavlink's state changes for a frame that fails it."""
+        why = framing.verify(frame, self.conn.mav.signing, self.cfg.require_signed)
+        if why is not None:
+            self.skip("bad_signature", detail=why)
             return None
-        if msg.get_srcComponent() == COMPONENT_ID and msg.get_srcSystem() == (self.system_id or 1):
+        if frame.component == COMPONENT_ID and frame.system == (self.system_id or 1):
             return None         # our own, echoed back
-        if self.system_id and msg.get_srcSystem() != self.system_id:
-            self.skipped["other_system"] += 1
+        if self.system_id and frame.system != self.system_id:
+            self.skip("other_system")
             return None
-        if name not in WANTED:
+        try:
+            msg = self.conn.mav.decode(bytearray(frame.buf))     # records the signed stream's time stamp
+        except mavlink.MAVError as e:
+            self.skip("bad_signature" if "signature" in e.message.lower() else "bad_frame", detail=e.message)
+            return None
+        if addr is not None and not self._from_peer(addr):
+            self.skip("other_address", detail=f"{addr[0]}:{addr[1]}")
+            return None
+        return msg
+
+    def _from_peer(self, addr) -> bool:
+        """Whether a valid autopilot frame from `addr` is the peer's (which it names when there is none
+        or the peer has been silent for link_timeout_s)."""
+        now = time.monotonic()
+        if addr != self.peer:
+            silent_s = now - self._peer_heard
+            if self.peer is not None and silent_s <= self.cfg.link_timeout_s:
+                return False
+            if self.peer is None:
+                log.info("MAVLink link: the autopilot is at %s:%d", *addr)
+            else:
+                log.warning("MAVLink link: the autopilot moved from %s:%d to %s:%d (silent for %.0f s)",
+                            *self.peer, *addr, silent_s)
+            self.peer = addr
+            if self._follow_peer:
+                self._out.to = addr
+        self._peer_heard = now
+        return True
+
+    def _take(self, msg):
+        """A decoded message to a sample, or None (counted when skipped)."""
+        if msg.get_type() not in WANTED:
             return None
         sample, reason = to_sample(msg)
         if reason:
-            self.skipped[reason] += 1
+            self.skip(reason)
         return sample
 
     def send(self, fn) -> None:
         """Call fn(mav) to send a message; a link without a peer yet or down is counted, not fatal."""
         try:
             fn(self.conn.mav)
-        except OSError as e:        # no peer yet (udpin before the first packet), link down
-            self.skipped["send_failed"] += 1
-            log.debug("send failed: %s", e)
+        except _NoPeer:             # udpin before the autopilot is heard
+            self.skip("send_no_peer", detail="no autopilot heard yet")
+        except OSError as e:        # link down, or refused
+            self.skip("send_failed", detail=str(e))
 
     def close(self) -> None:
+        self.skip.flush()
         self.conn.close()

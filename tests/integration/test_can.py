@@ -24,7 +24,7 @@ import pytest
 from guard.sources.can import FIX2, MAG2, RAW_IMU, CanSource, parse_can_url
 from guard.errors import ConfigError, SourceError
 from guard.model.samples import GnssFix, ImuSample
-from sim.canbus import CanPublisher
+from guard_sim.canbus import CanPublisher
 
 GNSS = dict(lat_deg=47.397742123, lon_deg=8.545594456, alt_m=488.123, vel_n=1.1, vel_e=-2.2, vel_d=0.3,
             fix3d=True, h_acc_m=1.5)

@@ -26,9 +26,9 @@ from guard.errors import SourceError
 from guard.model.samples import GnssFix, ImuSample, VehicleType
 from guard.runtime.replay import replay
 from guard.sources import log_format, open_log
-from sim import scenario
-from sim.dataflash import FMT, HEADER, MSG, LogFormat
-from sim.run import run
+from guard_sim import scenario
+from guard_sim.dataflash import FMT, HEADER, MSG, LogFormat
+from guard_sim.run import run
 
 ROOT = Path(__file__).resolve().parents[2]
 REAL = ROOT.parent / "shared" / "data" / "real"      # the shared folder beside the repository

@@ -10,8 +10,8 @@ import pytest
 
 from guard.config import parse, read
 from guard.runtime.replay import replay
-from sim import scenario
-from sim.run import run
+from guard_sim import scenario
+from guard_sim.run import run
 
 SEEDS = range(20)
 

@@ -17,9 +17,9 @@ from guard.model.events import Alarm, Cleared, Estimate, Notice
 from guard.core.geo import LocalFrame
 from guard.sources.tlog import TlogReader, tlog_samples
 from guard.model.samples import VehicleType
-from sim import scenario
-from sim.run import run
-from sim.scenario import Attack
+from guard_sim import scenario
+from guard_sim.run import run
+from guard_sim.scenario import Attack
 
 SEEDS = range(4)
 START_S = 30.0

@@ -13,9 +13,9 @@ import pytest
 from guard.config import parse
 from guard.errors import ConfigError
 from guard.runtime.replay import replay
-from sim import scenario
-from sim.run import run
-from sim.scenario import Attack
+from guard_sim import scenario
+from guard_sim.run import run
+from guard_sim.scenario import Attack
 
 LAG_S = 0.2
 ATTACK_S = 100.0

@@ -129,9 +129,9 @@ def test_the_figure_shows_the_alarmed_axis_and_explains_every_mark(tmp_path, mon
     from guard.runtime.replay import replay, truth_beside
     from guard.sinks import plot as figure
     import dataclasses
-    from sim import scenario as scenarios
-    from sim.run import run
-    from sim.scenario import Attack
+    from guard_sim import scenario as scenarios
+    from guard_sim.run import run
+    from guard_sim.scenario import Attack
     sc = dataclasses.replace(scenarios.load("clean"), duration_s=45.0,
                              attacks=(Attack("step", "gnss_pos", "east", 10.0, 25.0),))
     tlog = tmp_path / "east.tlog"
@@ -148,3 +148,24 @@ def test_the_figure_shows_the_alarmed_axis_and_explains_every_mark(tmp_path, mon
     labels = axes[2].get_legend_handles_labels()[1]
     for kind in ("statistic", "threshold", "excluded", "guard alarm", "attack: step on gnss_pos east"):
         assert any(kind in label for label in labels), (kind, labels)
+
+
+def test_a_udp_port_already_taken_is_refused():
+    """A second guard (or a router) on the same UDP port would otherwise share it silently (pymavlink
+    binds with SO_REUSEADDR): the one that comes second says so and does not start."""
+    import socket
+    from guard.config import LinkConfig
+    from guard.errors import SourceError
+    from guard.sources.link import MavlinkLink
+    first = MavlinkLink("udpin:127.0.0.1:0", LinkConfig())           # the first, as pymavlink binds it
+    port = first.conn.port.getsockname()[1]
+    try:
+        with pytest.raises(SourceError, match=f"UDP port {port} is in use"):
+            MavlinkLink(f"udpin:127.0.0.1:{port}", LinkConfig())
+    finally:
+        first.close()
+    free = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    free.bind(("127.0.0.1", 0))
+    port = free.getsockname()[1]
+    free.close()
+    MavlinkLink(f"udpin:127.0.0.1:{port}", LinkConfig()).close()      # a free port opens

@@ -18,9 +18,9 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from guard.errors import SourceError
 from guard.runtime.replay import replay
-from sim import scenario as scn
-from sim.mavout import TLOG_EPOCH_US
-from sim.run import Simulation, run
+from guard_sim import scenario as scn
+from guard_sim.mavout import TLOG_EPOCH_US
+from guard_sim.run import Simulation, run
 
 GPS_ID, IMU_ID = mavlink.MAVLINK_MSG_ID_GPS_RAW_INT, mavlink.MAVLINK_MSG_ID_RAW_IMU
 START_BYTES = (0xFD, 0xFE)

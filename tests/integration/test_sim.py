@@ -22,13 +22,13 @@ import pymap3d
 import pytest
 from pymavlink import mavutil
 
-import sim.sensors
+import guard_sim.sensors
 from guard.runtime.replay import replay
 from guard.sinks.plot import Trace
-from sim import scenario as scn
-from sim.mavout import TLOG_EPOCH_US
-from sim.run import Simulation, run
-from sim.scenario import Attack, ScenarioError
+from guard_sim import scenario as scn
+from guard_sim.mavout import TLOG_EPOCH_US
+from guard_sim.run import Simulation, run
+from guard_sim.scenario import Attack, ScenarioError
 
 G = 9.80665
 

@@ -22,10 +22,10 @@ from pyulog import ULog
 from guard.core.aiding.imu import heading
 from guard.sources import open_log
 from integration.test_sim import read_tlog
-from sim import scenario as scn
-from sim.run import Simulation, run
-from sim.scenario import SCENARIO_DIR, Noise, ScenarioError
-from sim.sensors import earth_field_ned_gauss
+from guard_sim import scenario as scn
+from guard_sim.run import Simulation, run
+from guard_sim.scenario import SCENARIO_DIR, Noise, ScenarioError
+from guard_sim.sensors import earth_field_ned_gauss
 
 SEED = 7
 # 30 s around a loop: speeds up from rest, changes speed and turns both ways

@@ -22,10 +22,10 @@ from guard.errors import SourceError
 from guard.model.samples import GnssFix, ImuSample, VehicleType
 from guard.runtime.replay import replay
 from guard.sources import log_format, open_log
-from sim import scenario
-from sim.run import run
-from sim.scenario import Attack
-from sim.ulog import to_ulog
+from guard_sim import scenario
+from guard_sim.run import run
+from guard_sim.scenario import Attack
+from guard_sim.ulog import to_ulog
 
 REAL = Path(__file__).resolve().parents[3] / "shared" / "data" / "real" / "px4_vtol_cubeorange_short.ulg"
 START_S = 20.0          # tools/eval.py's cases start at 30 s; 20 s leaves the filter settled and the run short

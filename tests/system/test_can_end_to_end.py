@@ -38,9 +38,9 @@ from guard.sources.tlog import TlogReader
 from guard.model.events import Alarm
 from guard.runtime.replay import replay
 from guard.model.samples import GnssFix
-from sim import scenario
-from sim.canbus import CanPublisher
-from sim.run import run
+from guard_sim import scenario
+from guard_sim.canbus import CanPublisher
+from guard_sim.run import run
 
 ROOT = Path(__file__).resolve().parents[2]
 # Not gyro_bias: its first alarm (mag yaw, on a slowly growing statistic) comes 1-2 GNSS samples apart on

@@ -34,8 +34,8 @@ from pymavlink import mavutil                          # noqa: E402
 
 from guard.config import parse                         # noqa: E402
 from guard.runtime.daemon import Daemon                        # noqa: E402
-from sim import scenario                               # noqa: E402
-from sim.run import Simulation                         # noqa: E402
+from guard_sim import scenario                               # noqa: E402
+from guard_sim.run import Simulation                         # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 SCENARIOS = ROOT / "configs" / "scenarios"
@@ -452,13 +452,17 @@ def test_time_jumping_back_reinitialises_without_alarm():
     assert not texts(got, CRITICAL) and g.d.alarms == 0
 
 
-def test_unwritable_log_still_alarms(tmp_path):
-    blocker = tmp_path / "file.txt"
-    blocker.write_text("a regular file, so nothing can be created under it\n")
-    mcap = blocker / "sub" / "run.mcap"
+def test_a_log_directory_lost_in_flight_still_alarms(tmp_path):
+    """The log's directory goes (a card pulled, a mount gone) after the daemon started: the next file
+    (rotation every 10 s of vehicle time) cannot open. The log is said lost; the alarm still goes out.
+    (A directory that cannot be written at start is an error before the link opens: test_operator.)"""
+    logs = tmp_path / "logs"
+    logs.mkdir()
     enc, items = scenario_messages("paper", until_s=45)
-    with in_process(mcap=str(mcap)) as g:
+    with in_process({"log": {"rotate_s": 10.0}}, mcap=str(logs / "run.mcap")) as g:
         peer = g.connect()
+        logs.rename(tmp_path / "gone")
+        logs.write_text("a regular file now, so nothing can be created under it\n")
         feed(peer, frames(enc, items), g.d)
         got = drain(peer)
         assert g.thread.is_alive()
@@ -467,7 +471,6 @@ def test_unwritable_log_still_alarms(tmp_path):
     assert any("MCAP log lost" in t for t in texts(got, WARNING)), texts(got)
     assert any("GUARD ALARM" in line for line in g.out)
     assert "MCAP errors" in g.out[-1], g.out[-1]
-    assert not mcap.exists()
 
 
 def test_alarm_not_lost_to_statustext_rate_limit():

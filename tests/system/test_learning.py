@@ -22,9 +22,9 @@ from guard.core.ekf import BM
 from guard.core.monitor import Monitor
 from guard.model.events import Alarm, Estimate
 from guard.sources.tlog import TlogReader
-from sim import scenario as scenarios
-from sim.run import run
-from sim.scenario import Attack
+from guard_sim import scenario as scenarios
+from guard_sim.run import run
+from guard_sim.scenario import Attack
 
 pytestmark = pytest.mark.slow
 

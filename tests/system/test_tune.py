@@ -12,9 +12,9 @@ import pytest
 from guard.config import Config, parse
 from guard.runtime.replay import replay
 from guard.runtime.tune import tune
-from sim import scenario as scn
-from sim.run import run
-from sim.scenario import Attack
+from guard_sim import scenario as scn
+from guard_sim.run import run
+from guard_sim.scenario import Attack
 
 STEP_AT_S = 80.0
 

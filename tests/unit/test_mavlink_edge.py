@@ -17,8 +17,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from guard.sources.mavlink import to_sample
 from guard.model.samples import Attitude, GnssFix, ImuSample, VehicleType
-from sim.mavout import Encoder
-from sim.sensors import ImuReading
+from guard_sim.mavout import Encoder
+from guard_sim.sensors import ImuReading
 
 G = 9.80665
 

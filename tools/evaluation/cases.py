@@ -7,8 +7,8 @@ import random
 import tomllib
 
 from guard.config import parse
-from sim import scenario as scenarios
-from sim.scenario import Attack
+from guard_sim import scenario as scenarios
+from guard_sim.scenario import Attack
 
 START_S = 30.0
 ALL_FAMILIES = ("step", "ramp", "spoof", "freeze", "imu", "early", "clean", "paper")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from sim.run import run
+from guard_sim.run import run
 from tools.evaluation.cases import ALL_FAMILIES, base_scenario, cases, detector_config, phased, sim_seed
 
 

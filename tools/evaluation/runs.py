@@ -18,7 +18,7 @@ from guard.model.events import Alarm, Estimate, Tested
 from guard.runtime.pump import Pump
 from guard.sinks.base import Sink
 from guard.sources.tlog import TlogReader
-from sim.run import run
+from guard_sim.run import run
 from tools.evaluation.cases import base_scenario, detector_config, phased, sim_seed, vehicle
 
 
