@@ -28,6 +28,7 @@ own frames (component 191) are ignored. The link may be hostile; what it does ab
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import logging
 import math
@@ -49,6 +50,7 @@ log = logging.getLogger(__name__)
 
 COMPONENT_ID = mavlink.MAV_COMP_ID_ONBOARD_COMPUTER     # 191
 WANTED = {"GPS_RAW_INT", "RAW_IMU", "ATTITUDE", "HEARTBEAT"}
+RCVBUF_BYTES = 4 << 20          # a UDP link's receive buffer, asked for (see MavlinkLink)
 LOG_EVERY_S = 10.0              # at most one log line per skip reason this often
 UDP_MAX = 65535
 WARN_REASONS = {"bad_signature", "other_address"}     # signs of an attack: WARNING, the rest INFO
@@ -165,6 +167,11 @@ class MavlinkLink:
         self._out = None
         self._follow_peer = False           # udpin and udpbcast answer the peer; udpout its own address
         if self.udp:
+            # a burst of junk must not push the autopilot's frames out of the kernel's queue: ask for a
+            # larger receive buffer (the kernel caps it at net.core.rmem_max; what it still drops, it
+            # counts in /proc/net/snmp, Udp RcvbufErrors)
+            with contextlib.suppress(OSError):
+                self.conn.port.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RCVBUF_BYTES)
             self._follow_peer = self.conn.udp_server or self.conn.broadcast
             self._out = _UdpOut(self.conn.port, self._first_destination(url))
             self.conn.mav.file = self._out      # pymavlink's write would send to every address seen
