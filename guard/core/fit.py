@@ -37,6 +37,9 @@ class ModelFit:
         if a is None:
             self.acc[sensor] = [z2, float(len(r)), t_us, t_us]
             return
+        if t_us < a[3]:     # a new time base (a reboot): the mean carries over, its age with it (no exp overflow)
+            a[2] -= a[3] - t_us
+            a[3] = t_us
         decay = math.exp((a[3] - t_us) / (TAU_S * 1e6))
         a[0] = a[0] * decay + z2
         a[1] = a[1] * decay + len(r)

@@ -23,7 +23,10 @@ Time stamps (`time_source`):
 unknown_type (a data type guard does not read, a service or anonymous transfer), other_node,
 other_sensor (a second magnetometer on the IMU node), bad_transfer (wrong CRC, toggle or tail bits,
 cut off, out of order, undecodable payload), no_timestamp, not_dronecan (11-bit, remote, error or
-empty frames) and silent (one per silence: a sensor's node sent nothing decodable for timeout_s).
+empty frames), silent (one per silence: a sensor's node sent nothing decodable for timeout_s),
+gnss_bad_position (a 3D fix off the globe) and bad_value (an IMU or magnetometer value not finite or
+beyond any sensor's range, a time stamp past 2100: the transfer is dropped; a GNSS velocity beyond
+600 m/s: the fix is kept without it). A GNSS velocity that is not finite is left out of the fix.
 `no_fix` counts Fix2 without a 3D fix; those are still yielded, with fix_ok=False, for the core.
 """
 
@@ -42,7 +45,10 @@ log = logging.getLogger(__name__)
 FIX2, RAW_IMU, MAG2 = 1063, 1003, 1002          # DroneCAN data type ids
 ROLE = {FIX2: "gnss", RAW_IMU: "imu", MAG2: "imu"}
 REASONS = ("unknown_type", "other_node", "other_sensor", "bad_transfer", "no_fix", "no_timestamp",
-           "not_dronecan", "silent")
+           "not_dronecan", "silent", "gnss_bad_position", "bad_value")
+T_MAX_US = 4_102_444_800_000_000        # 2100-01-01 in unix microseconds: no bus time goes past it
+ACC_MAX_MPS2, GYRO_MAX_RADPS = 2000.0, 200.0    # beyond any MEMS range: corrupt data
+MAG_MAX_GAUSS, SPEED_MAX_MPS = 10.0, 600.0      # beyond a magnetometer's range, a receiver's export limit
 
 
 def parse_can_url(url: str) -> tuple[str, str]:
@@ -196,27 +202,41 @@ class CanSource:
         if dtid == MAG2:
             if self._mag_sensor_id is None:
                 self._mag_sensor_id = m.sensor_id
+            mag = tuple(float(v) for v in m.magnetic_field_ga)
             if m.sensor_id != self._mag_sensor_id:
                 self.stats["other_sensor"] += 1
+            elif not _within(mag, MAG_MAX_GAUSS):
+                self.stats["bad_value"] += 1
             else:
-                self._mag = tuple(float(v) for v in m.magnetic_field_ga)
+                self._mag = mag
             return None
         self._heard(ROLE[dtid])
         t_us = self._t_us(m.timestamp.usec, transfer, type_name)
         if t_us is None:
             return None
         if dtid == RAW_IMU:
-            ax, ay, az = m.accelerometer_latest
-            gx, gy, gz = m.rate_gyro_latest
+            ax, ay, az = acc = tuple(m.accelerometer_latest)
+            gx, gy, gz = gyro = tuple(m.rate_gyro_latest)
+            if not (_within(acc, ACC_MAX_MPS2) and _within(gyro, GYRO_MAX_RADPS)):
+                self.stats["bad_value"] += 1
+                return None
             mx, my, mz = self._mag if self._mag is not None else (None, None, None)
             return ImuSample(t_us, ax, ay, az, gx, gy, gz, mx, my, mz)
         fix_ok = m.status >= 3                      # STATUS_3D_FIX
+        lat, lon = m.latitude_deg_1e8 / 1e8, m.longitude_deg_1e8 / 1e8
+        if fix_ok and not (abs(lat) <= 90 and abs(lon) <= 180 and (lat, lon) != (0.0, 0.0)):
+            self.stats["gnss_bad_position"] += 1
+            return None
         if not fix_ok:
             self.stats["no_fix"] += 1               # still yielded: the core announces the loss
         h_acc, vel_acc = _accuracies(list(m.covariance))
         vn, ve, _vd = m.ned_velocity
-        return GnssFix(t_us=t_us, fix_ok=fix_ok, lat_deg=m.latitude_deg_1e8 / 1e8,
-                       lon_deg=m.longitude_deg_1e8 / 1e8, alt_m=m.height_msl_mm / 1000.0,
+        if not (math.isfinite(vn) and math.isfinite(ve)):
+            vn = ve = None
+        elif not _within((vn, ve), SPEED_MAX_MPS):
+            self.stats["bad_value"] += 1
+            vn = ve = None
+        return GnssFix(t_us=t_us, fix_ok=fix_ok, lat_deg=lat, lon_deg=lon, alt_m=m.height_msl_mm / 1000.0,
                        vel_n_mps=vn, vel_e_mps=ve, h_acc_m=h_acc, vel_acc_mps=vel_acc)
 
     def _t_us(self, usec: int, transfer, type_name: str) -> int | None:
@@ -229,6 +249,9 @@ class CanSource:
                 log.warning("CAN %s: %s from node %d has no timestamp (0); skipped. "
                             "Use time_source='receive' for such nodes", self.name, type_name,
                             transfer.source_node_id)
+            return None
+        if usec > T_MAX_US:
+            self.stats["bad_value"] += 1
             return None
         return usec
 
@@ -250,6 +273,11 @@ class CanSource:
                 node = "any node" if self.node[role] is None else f"node {self.node[role]}"
                 log.warning("CAN %s: no %s from %s for %.1f s; still waiting", self.name,
                             role.upper(), node, now - last)
+
+
+def _within(values, limit: float) -> bool:
+    """Every value finite and at most `limit` in size."""
+    return all(abs(v) <= limit for v in values)       # False for NaN
 
 
 def _accuracies(cov: list[float]) -> tuple[float | None, float | None]:

@@ -2,7 +2,8 @@
 
 GPS_RAW_INT: lat/lon degE7, alt mm, vel cm/s, cog cdeg (UINT16_MAX = unknown), h_acc mm,
 vel_acc mm/s; fix_type < 3 is no 3D fix. RAW_IMU (ArduPilot): acceleration mG (specific force),
-gyro mrad/s, magnetometer mGauss, body FRD. ATTITUDE: roll, pitch rad; time_boot_ms.
+gyro mrad/s, magnetometer mGauss, body FRD. ATTITUDE: roll, pitch rad; time_boot_ms; a roll outside
+[-pi, pi] or a pitch beyond 1.5 rad (or either not finite) is skipped.
 HEARTBEAT of an autopilot (autopilot != INVALID): its type; a GROUND_ROVER is a ground vehicle.
 
 Read from a live link (`guard.sources.link`) and from tlog files (`guard.sources.tlog`).
@@ -26,6 +27,7 @@ WANTED = {mavlink.MAVLINK_MSG_ID_GPS_RAW_INT, mavlink.MAVLINK_MSG_ID_RAW_IMU, ma
 
 
 T_MAX_US = 4_102_444_800_000_000     # 2100-01-01 in unix microseconds: no boot or unix time goes past it
+ROLL_MAX_RAD = math.pi + 1e-6        # roll is in [-pi, pi]; float32(pi) is 8.7e-8 above pi
 
 
 def to_sample(msg) -> tuple[Sample | None, str | None]:
@@ -54,7 +56,7 @@ def to_sample(msg) -> tuple[Sample | None, str | None]:
         return ImuSample(int(msg.time_usec), msg.xacc * a, msg.yacc * a, msg.zacc * a,
                          msg.xgyro * w, msg.ygyro * w, msg.zgyro * w, mx, my, mz), None
     if name == "ATTITUDE":
-        if not (math.isfinite(msg.roll) and math.isfinite(msg.pitch)) or abs(msg.pitch) > 1.5:
+        if not (abs(msg.roll) <= ROLL_MAX_RAD and abs(msg.pitch) <= 1.5):     # also NaN, inf
             return None, "attitude_non_finite"
         return Attitude(int(msg.time_boot_ms) * 1000, msg.roll, msg.pitch), None
     if name == "HEARTBEAT":

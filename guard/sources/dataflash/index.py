@@ -136,8 +136,13 @@ class Log:
         fmt = self.format(name)
         time_col, scale = _time_column(fmt) or (None, 0)
         unpack, data = struct.Struct(fmt.msg_struct).unpack_from, self.data
-        picks = [(i, None if i is None else fmt.msg_mults[i]) for i in map(fmt.colhash.get, columns)]
-        it = fmt.colhash.get(time_col) if time_col else None
+        n = len(fmt.msg_mults)      # a corrupt FMT can name more columns than it has format characters
+
+        def index(column: str | None) -> int | None:
+            i = fmt.colhash.get(column) if column else None
+            return i if i is not None and i < n else None
+        picks = [(i, None if i is None else fmt.msg_mults[i]) for i in map(index, columns)]
+        it = index(time_col)
 
         def decode(ofs: int) -> tuple:
             e = unpack(data, ofs + 3)

@@ -9,7 +9,7 @@ Units, as ArduPilot logs them, converted here to the samples' SI units:
   reading rides on the IMU samples while it is fresh (`guard.sources.logs_common.mag_fresh`).
 - GPS: Status (AP_GPS::GPS_Status, 3 = 3D fix and better), Lat/Lng degE7, Alt cm, Spd m/s, GCrs deg
   (ground course), VZ m/s. GPA (written with the same TimeUS): HAcc m and SAcc m/s, stored in cm ('C').
-- ATT: Roll, Pitch in centidegrees ('c').
+- ATT: Roll, Pitch in centidegrees ('c'); a roll beyond 180 degrees or a pitch beyond 1.5 rad is corrupt.
 """
 
 from __future__ import annotations
@@ -30,6 +30,7 @@ from guard.sources.logs_common import mag_fresh
 
 MAX_ACC_MPS2, MAX_GYRO_RADPS = 2000.0, 200.0     # beyond any MEMS range: corrupt data
 MAX_SPEED_MPS = 600.0             # beyond a GNSS receiver's export limit: corrupt data
+MAX_MAG_MGAUSS = 32_767           # MAG's int16: more comes only from a corrupt format
 
 
 class DataFlashReader(LogSource):
@@ -115,8 +116,8 @@ class DataFlashReader(LogSource):
 
     def _gnss_sample(self, v: tuple) -> tuple[GnssFix | None, str | None]:
         t, status, lat, lon, alt, speed, course = v
-        if not (0 <= status <= 8 and math.isfinite(alt)):
-            return None, "bad_message"
+        if not (0 <= status <= 8 and math.isfinite(lat) and math.isfinite(lon) and math.isfinite(alt)):
+            return None, "bad_message"      # (None, a column a corrupt format lacks: TypeError, bad_message too)
         fix = status >= 3
         if fix and not (abs(lat) <= 90 and abs(lon) <= 180 and (lat, lon) != (0.0, 0.0)):
             return None, "gnss_bad_position"
@@ -139,8 +140,10 @@ class DataFlashReader(LogSource):
             return ImuSample(int(t), ax, ay, az, gx, gy, gz, None, None, None), None
         return ImuSample(int(t), ax, ay, az, gx, gy, gz, mag[1], mag[2], mag[3]), None
 
-    def _mag_reading(self, v: tuple) -> tuple[None, None]:
+    def _mag_reading(self, v: tuple) -> tuple[None, str | None]:
         t, mx, my, mz = v
+        if not all(abs(m) <= MAX_MAG_MGAUSS for m in (mx, my, mz)):     # also NaN: a corrupt format
+            return None, "bad_message"
         self._mag_now = None if (mx, my, mz) == (0, 0, 0) else (t, mx / 1000.0, my / 1000.0, mz / 1000.0)
         return None, None
 
@@ -149,6 +152,6 @@ class DataFlashReader(LogSource):
         if roll is None or pitch is None:
             return None, "bad_message"
         roll, pitch = math.radians(roll), math.radians(pitch)
-        if not (math.isfinite(roll) and math.isfinite(pitch)) or abs(pitch) > 1.5:
+        if not (abs(roll) <= math.pi and abs(pitch) <= 1.5):     # int16 centidegrees reach 327.67: corrupt
             return None, "attitude_non_finite"
         return Attitude(int(t), roll, pitch), None

@@ -9,6 +9,7 @@ and SAcc m/s, stored in cm ('C'). Rates in Hz, from boot time stamps in microsec
 from __future__ import annotations
 
 import datetime
+import math
 import re
 import statistics
 
@@ -50,12 +51,15 @@ def account(index, skipped, notes: list[str]) -> None:
         skipped["garbage_bytes"] += garbage
     if index.formats.refused:
         skipped["bad_format"] += index.formats.refused
-    tail = size - stop
-    if tail >= 3 and index.data_map[stop:stop + 2] == HEAD:
+    tail, data = size - stop, index.data_map
+    fmt = index.formats.get(data[stop + 2]) if tail >= 3 and data[stop:stop + 2] == HEAD else None
+    if 0 < tail < 3 and HEAD.startswith(data[stop:size]) or fmt is not None and tail < fmt.len:
+        skipped["truncated"] += 1           # the last message, cut in its header or right after it
+    elif tail >= 3 and data[stop:stop + 2] == HEAD:
         skipped["unread_bytes"] += tail
         notes.append(f"reading stopped at byte {stop} of {size}: a message type no FMT declared "
                      f"(corrupt data); the last {tail} bytes are not read")
-    elif tail >= 3:
+    elif tail > 0:
         skipped["garbage_bytes"] += tail
 
 
@@ -97,7 +101,9 @@ def accuracies(log: Log, gnss: tuple | None, n: int | None) -> dict[int, tuple[f
     gpa = log.instances("GPA").get(n)
     if gpa is None:
         return {}
-    return {t: (h if h else None, s if s else None) for t, h, s in log.rows(gpa[0], ["HAcc", "SAcc"], gpa[1])}
+    def known(a) -> float | None:       # 0: not known; not a positive finite number: a corrupt format
+        return a if isinstance(a, int | float) and 0 < a < math.inf else None
+    return {t: (known(h), known(s)) for t, h, s in log.rows(gpa[0], ["HAcc", "SAcc"], gpa[1])}
 
 
 def gps_utc(log: Log, gnss: tuple | None) -> tuple[datetime.date | None, int | None]:

@@ -29,21 +29,31 @@ def looks_like_ulog(head: bytes) -> bool:
 
 
 class _TrackedFile:
-    """The file as pyulog reads it. `cut_at`: where its last non-empty read began if that read came up
-    short (pyulog stops there silently: a file cut inside a message, or corrupt bytes read as a long one)."""
+    """The file as pyulog reads it. `cut_at`: where its last read began if that read came up short
+    (pyulog stops there silently: a file cut inside a message, or corrupt bytes read as a long one). An
+    empty read of a 3-byte message header is the file's end, not a cut.
+
+    pyulog steps back after a message it reads as corrupt by the size it asked for, not the size it
+    got: after a short read, at the end of the file, that lands before the message and it reads the
+    same bytes again, for ever. A step back is taken from where the bytes asked for would have ended."""
 
     def __init__(self, f):
         self._f, self.cut_at = f, None
+        self._short = 0         # bytes the last read came up short by
 
     def read(self, n: int = -1) -> bytes:
         at = self._f.tell()
         data = self._f.read(n)
-        if data:
+        self._short = max(n - len(data), 0)
+        if data or n not in (-1, 3):        # nothing for a message's body: the file ends after its header
             self.cut_at = at if 0 <= n and len(data) < n else None
         return data
 
-    def seek(self, *args) -> int:
-        return self._f.seek(*args)
+    def seek(self, offset: int, whence: int = 0) -> int:
+        if whence == 1 and offset < 0:
+            offset = min(offset + self._short, 0)
+        self._short = 0
+        return self._f.seek(offset, whence)
 
     def tell(self) -> int:
         return self._f.tell()

@@ -114,6 +114,8 @@ def gnss_stream(data, skipped) -> Stream | None:
         return None
     nan = np.full(t.size, np.nan)
     fix_ok = d["fix_type"] >= 3
+    # without a fix the position means nothing (the core does not read it): where it is not finite, 0
+    lat, lon, alt = (np.where(fix_ok | np.isfinite(v), v, 0.0) for v in (lat, lon, alt))
     good = ~fix_ok | ((np.abs(lat) <= 90) & (np.abs(lon) <= 180) & ((lat != 0) | (lon != 0)) & np.isfinite(alt))
     keep = _drop(good, "gnss_bad_position", skipped)
     vn, ve = (d.get(k, nan).astype(np.float64) for k in ("vel_n_m_s", "vel_e_m_s"))
