@@ -25,14 +25,13 @@ from guard.sources.link import MavlinkLink
 from guard.sources.live import check_url, open_link
 from guard.runtime.pump import Pump
 from guard.runtime.sdnotify import Notifier
-from guard.sinks.mcap import McapLog
+from guard.sinks.mcap import UNIX_2001_US, McapLog
 from guard.sinks.statustext import StatusText
 
 log = logging.getLogger(__name__)
 
 POLL_S = 0.2            # the loop wakes at least this often (watchdog, heartbeat, link timeout)
 LOG_LOST_REPEAT_S = 60.0    # how often to repeat "MCAP log lost" while it stays lost
-UNIX_2001_US = 978_307_200_000_000
 
 
 class WallClock:

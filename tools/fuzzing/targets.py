@@ -129,13 +129,18 @@ def run_mavlink(data: bytes) -> Counter:
             if msg.get_type() == "BAD_DATA":
                 seen["bad_data"] += 1
                 continue
-            sample, reason = to_sample(msg)
-            if sample is not None:
-                contract.check_sample(sample)
-                seen[type(sample).__name__] += 1
-            elif reason:
-                seen[reason] += 1
+            tally(msg, seen)
     return seen
+
+
+def tally(msg, seen: Counter) -> None:
+    """One decoded message through to_sample: its sample checked against the contract, counted."""
+    sample, reason = to_sample(msg)
+    if sample is not None:
+        contract.check_sample(sample)
+        seen[type(sample).__name__] += 1
+    elif reason:
+        seen[reason] += 1
 
 
 def run_framing(buf: bytes, step: int) -> Counter:
@@ -157,12 +162,7 @@ def run_framing(buf: bytes, step: int) -> Counter:
         except mavlink.MAVError:
             seen["bad_frame"] += 1
             continue
-        sample, reason = to_sample(msg)
-        if sample is not None:
-            contract.check_sample(sample)
-            seen[type(sample).__name__] += 1
-        elif reason:
-            seen[reason] += 1
+        tally(msg, seen)
     return +seen
 
 
