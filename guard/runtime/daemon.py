@@ -100,6 +100,7 @@ class Daemon:
         self.source = None
         self.link: MavlinkLink | None = None
         self.gcs: MavlinkLink | None = None         # link.gcs: where guard's messages go as well
+        self._output_only: list[MavlinkLink] = []   # links guard sends on but takes no samples from
         self.log: McapLog | None = None
         self.status = StatusText(None, cfg.link, out, self._core_notice)
         self.clock = WallClock()
@@ -146,6 +147,7 @@ class Daemon:
                                          "connect": self.connect}, clock=self.clock)
             self.pump.sinks.append(self.log)
         self.status = StatusText(Fanout([self.link, self.gcs]), link_cfg, self.out, self._core_notice)
+        self._output_only = [k for k in (self.link, self.gcs) if k is not None and k is not self.source]
         self.pump.sinks.append(self.status)
         self.out(f"guard: listening on {self.connect}" + (f", logging to {self.mcap_path}" if self.log else ""))
         self.started = True
@@ -162,6 +164,8 @@ class Daemon:
             self.notifier.watchdog()
             self.status.tick(self.ratio)
             sample = self.source.poll(POLL_S)
+            for link in self._output_only:      # heard too, or a udpin one would never learn whom to answer
+                link.drain()
             now = time.monotonic()
             if isinstance(sample, GnssFix):
                 last["GNSS"] = now

@@ -206,6 +206,19 @@ class MavlinkLink:
                 log.debug("receive error: %s", e)
                 time.sleep(min(remaining, 0.05))
 
+    def drain(self, most: int = 256) -> int:
+        """Read what is waiting (at most `most` reads), without blocking, and drop its samples: a link
+        that carries only guard's own messages (the alarms of a monitor reading CAN, `link.gcs`) still
+        hears its peer, the one it answers, and its socket does not fill. Returns the reads made."""
+        n = 0
+        try:
+            while n < most and self._read():
+                n += 1
+        except OSError as e:
+            log.debug("receive error: %s", e)
+        self._pending.clear()
+        return n
+
     def _read(self) -> bool:
         """Read one datagram (UDP) or what the stream has, and queue its accepted messages; False when
         there was nothing to read."""

@@ -17,11 +17,13 @@ mG and mrad/s, so the statistics differ slightly. Alarm times, indices, sensors 
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import os
 import re
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -253,3 +255,63 @@ def test_bus_that_cannot_open_is_an_error_naming_it(args, names):
 def test_bus_that_cannot_open_is_one_line(args, names):
     rc, stderr = guard_fails(args)
     assert rc != 0 and len(stderr) == 1, stderr
+
+
+# --- the alarms of a monitor reading CAN, on a MAVLink link that listens (udpin) ------------------------------
+
+def test_a_can_monitor_answers_the_station_its_alarm_link_hears():
+    """Reading CAN, guard sends its alarms on link.connect; a udpin link answers whoever it hears, so it
+    must be read too: the autopilot (which forwards STATUSTEXT to the ground) sends HEARTBEATs to it and
+    gets the attack's alarm."""
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+    from guard.config import parse
+    from guard.runtime.daemon import Daemon
+
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    probe.bind(("127.0.0.1", 0))
+    port = probe.getsockname()[1]
+    probe.close()
+    url = f"can:virtual:alarm-link-{uuid.uuid4().hex[:8]}"
+    lines: list[str] = []
+    daemon = Daemon(parse({"link": {"connect": f"udpin:127.0.0.1:{port}", "link_timeout_s": 60.0}}),
+                    connect=url, out=lines.append)
+    thread = threading.Thread(target=daemon.serve, daemon=True)
+    thread.start()
+    station = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)      # the autopilot's MAVLink side
+    station.settimeout(0.05)
+    autopilot = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    heartbeat = autopilot.heartbeat_encode(mavlink.MAV_TYPE_GROUND_ROVER, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                           0, 0, 0).pack(autopilot)
+    texts: list[str] = []
+    try:
+        deadline = time.monotonic() + 10
+        while not daemon.started and time.monotonic() < deadline:
+            time.sleep(0.01)
+        parser = mavlink.MAVLink(None)
+        done = threading.Event()
+
+        def listen():
+            while not done.is_set():
+                station.sendto(heartbeat, ("127.0.0.1", port))
+                with contextlib.suppress(OSError):
+                    for msg in parser.parse_buffer(station.recv(4096)) or []:
+                        if msg.get_type() == "STATUSTEXT":
+                            texts.append(msg.text)
+        listener = threading.Thread(target=listen, daemon=True)
+        listener.start()
+        while daemon.link.peer is None and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert daemon.link.peer is not None, "the alarm link never heard the autopilot"
+        with CanPublisher(url) as publisher:
+            run(scenario.load("paper"), 1, can=publisher, fast=True)
+        deadline = time.monotonic() + 60
+        while not any("ALARM gnss_pos" in t for t in texts) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        done.set()
+        listener.join(timeout=5)
+    finally:
+        daemon.should_exit = True
+        thread.join(timeout=10)
+        station.close()
+    assert any("GUARD ALARM gnss_pos north" in t for t in texts), (texts, lines)
