@@ -2,6 +2,7 @@
 
     python tools/hostile_link.py                      # 10 hostile frames per genuine one (about 10^5)
     python tools/hostile_link.py --ratio 1 --seed 3
+    python tools/hostile_link.py --kinds other_sender --senders 100000    # 10^5 spoofed senders
 
 The daemon (`guard run`'s Daemon, in this process, listening on UDP loopback) is fed the paper
 scenario (80 s, a 10 m GNSS north step at sample 400) twice: once clean, once with `--ratio` hostile
@@ -12,12 +13,15 @@ datagrams sent for every genuine frame, from the autopilot's own address and fro
     stray         a stray 0xFD byte, alone, or in front of a copy of a genuine frame
     other_system  a valid GPS_RAW_INT from system 2, 50 m away (another vehicle on the link)
     other_sender  a valid GPS_RAW_INT of the autopilot's own system id, 50 m away, from another address
+                  (with `--senders N`, from N addresses in turn: 127.0.0.0/8 is all loopback)
 
 Printed: the GNSS sample of each run's first alarm and any alarm before the attack, the daemon
 alive, the genuine samples that did not reach the core (a repeat lost with its stray byte is not
 one), what it counted as skipped by reason against what was sent, and its resident memory at the
-start, the middle and the end of the hostile run (the process's; both runs share it). Exit status 1
-if the alarm moved, a false alarm came or the daemon died.
+start, the middle and the end of the hostile run (the process's; both runs share it), and the
+daemon thread's CPU: per thousand datagrams, and its share of a core over the 3 s after the last
+frame (a flood must leave nothing behind that keeps it busy). Exit status 1 if the alarm moved, a
+false alarm came or the daemon died.
 """
 
 from __future__ import annotations
@@ -70,6 +74,41 @@ class Alarms(Sink):
         self.alarms += [e for e in events if isinstance(e, Alarm)]
 
 
+def thread_cpu_s(tid: int) -> float:
+    """The CPU time (user + system) of one thread of this process, from /proc."""
+    with open(f"/proc/self/task/{tid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+class Senders:
+    """Where other_sender datagrams come from: one socket, or `n` loopback addresses in turn (a
+    socket bound to each, opened for one datagram)."""
+
+    def __init__(self, n: int):
+        self.n, self.i = n, 0
+        self.one = socket.socket(socket.AF_INET, socket.SOCK_DGRAM) if n <= 1 else None
+
+    @property
+    def addresses(self) -> int:
+        """How many addresses sent (not a set of them: this process's memory is measured)."""
+        return 1 if self.one is not None else min(self.i, self.n)
+
+    def sendto(self, data: bytes, to) -> None:
+        if self.one is not None:
+            self.one.sendto(data, to)
+            return
+        k = self.i % self.n + 2                 # 127.0.0.2 on: 127.0.0.1 is the autopilot's
+        self.i += 1
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.bind((f"127.{k >> 16 & 255}.{k >> 8 & 255}.{k & 255}", 0))
+            s.sendto(data, to)
+
+    def close(self) -> None:
+        if self.one is not None:
+            self.one.close()
+
+
 def rss_mb() -> float:
     with open("/proc/self/statm") as f:
         return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 1e6
@@ -100,8 +139,9 @@ def hostile(rng: random.Random, frame: bytes, msg, others: dict, kinds=KINDS) ->
     return kind, fake.pack(others[kind])
 
 
-def run(ratio: float, seed: int, frames, kinds=KINDS) -> dict:
-    """One run of the daemon over the frames, `ratio` hostile datagrams per genuine frame."""
+def run(ratio: float, seed: int, frames, kinds=KINDS, senders: int = 1) -> dict:
+    """One run of the daemon over the frames, `ratio` hostile datagrams per genuine frame, the
+    other_sender ones from `senders` addresses."""
     probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     probe.bind(("127.0.0.1", 0))
     port = probe.getsockname()[1]
@@ -114,7 +154,9 @@ def run(ratio: float, seed: int, frames, kinds=KINDS) -> dict:
     thread.start()
     while not any("listening on" in line for line in out):
         time.sleep(0.01)
-    me, stranger = (socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(2))
+    tid = thread.native_id
+    cpu0 = thread_cpu_s(tid)
+    me, stranger = socket.socket(socket.AF_INET, socket.SOCK_DGRAM), Senders(senders)
     others = {"other_system": mavlink.MAVLink(None, srcSystem=2, srcComponent=1),
               "other_sender": mavlink.MAVLink(None, srcSystem=1, srcComponent=1)}
     rng = random.Random(seed)
@@ -144,6 +186,9 @@ def run(ratio: float, seed: int, frames, kinds=KINDS) -> dict:
     while final is not None and key(final) not in alarms.seen and time.monotonic() < deadline:
         time.sleep(0.01)
     time.sleep(0.5)                     # what came after the last genuine frame
+    cpu_busy = thread_cpu_s(tid) - cpu0
+    time.sleep(3.0)                     # nothing more is sent: the daemon should idle
+    cpu_after = (thread_cpu_s(tid) - cpu0 - cpu_busy) / 3.0
     alive = thread.is_alive()
     skipped = Counter(d.link.skipped) if d.link else Counter()
     d.should_exit = True
@@ -157,7 +202,9 @@ def run(ratio: float, seed: int, frames, kinds=KINDS) -> dict:
             "false_alarms": [a.gnss_index for a in alarms.alarms if a.t_us < ATTACK_US],
             "alive": alive, "sent": sent, "skipped": skipped, "samples_taken": d.samples, "samples_sent": samples,
             "genuine_lost": len(wanted - alarms.seen),
-            "memory_mb": memory, "summary": next((line for line in out if line.startswith("guard: stopped")), "")}
+            "memory_mb": memory, "cpu_s": cpu_busy, "cpu_after": cpu_after,
+            "datagrams": len(frames) + sum(sent.values()), "senders": stranger.addresses,
+            "summary": next((line for line in out if line.startswith("guard: stopped")), "")}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -165,11 +212,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--ratio", type=float, default=10.0, help="hostile datagrams per genuine frame (default 10)")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--kinds", nargs="+", choices=KINDS, default=list(KINDS), help="the kinds of hostile frame sent")
+    p.add_argument("--senders", type=int, default=1, help="other_sender datagrams come from this many addresses")
     args = p.parse_args(argv)
     frames = genuine()
     clean = run(0.0, args.seed, frames)
     start = time.monotonic()
-    bad = run(args.ratio, args.seed, frames, tuple(args.kinds))
+    bad = run(args.ratio, args.seed, frames, tuple(args.kinds), args.senders)
     took = time.monotonic() - start
     print(f"genuine frames {len(frames)}, hostile datagrams {sum(bad['sent'].values())} ({dict(bad['sent'])}), "
           f"hostile run {took:.0f} s")
@@ -177,7 +225,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name:8s} first alarm at GNSS sample {r['first_alarm']}, false alarms {r['false_alarms'] or 'none'}, "
               f"daemon alive {r['alive']}, samples {r['samples_taken']} of {r['samples_sent']} "
               f"({r['genuine_lost']} genuine lost), "
-              f"memory {' -> '.join(f'{m:.1f}' for m in r['memory_mb'])} MB")
+              f"memory {' -> '.join(f'{m:.1f}' for m in r['memory_mb'])} MB, "
+              f"daemon CPU {1e6 * r['cpu_s'] / r['datagrams']:.0f} ms per 1000 datagrams "
+              f"({r['datagrams']} datagrams), {100 * r['cpu_after']:.1f} % of a core in the 3 s after")
+    print(f"hostile: other_sender datagrams came from {bad['senders']} address(es)")
     print(f"hostile: skipped by the link {dict(sorted(bad['skipped'].items()))}")
     print(f"hostile: {re.sub(r'^guard: ', '', bad['summary'])}")
     ok = bad["first_alarm"] == clean["first_alarm"] and not bad["false_alarms"] and bad["alive"] \
