@@ -129,6 +129,8 @@ def _check(cfg: Config, where: str) -> None:
         "filter.gnss_pos_acc_fraction": (not 0 < flt.gnss_pos_acc_fraction <= 1, "must be in (0, 1]"),
         "filter.q_accel_no_imu_mps2": (flt.q_accel_no_imu_mps2 <= 0, "must be > 0"),
         "log.rotate_mb": (0 < cfg.log.rotate_mb < 1.0, "must be 0 (never) or >= 1 MB"),
+        "link.require_signed": (link.require_signed and not link.signing_key_file,
+                                "needs link.signing_key_file (without a key no signature can be checked)"),
     }
     for f in fields(FilterConfig):
         value = getattr(flt, f.name)

@@ -660,7 +660,8 @@ def test_signing_required(tmp_path):
     ("[link]\nheartbeat_hz = 1.0\nhartbeat_hz = 2.0\n", "link.hartbeat_hz"),
     ("[link]\nlink_timeout_s = \"five\"\n", "link.link_timeout_s"),
     ("[monitor]\nvehicle = \"boat\"\n", "monitor.vehicle"),
-], ids=["unknown-key", "wrong-type", "bad-choice"])
+    ("[link]\nrequire_signed = true\n", "link.require_signed"),
+], ids=["unknown-key", "wrong-type", "bad-choice", "signed-without-key"])
 def test_config_error_is_one_line(tmp_path, body, key):
     bad = tmp_path / "bad.toml"
     bad.write_text(body)
