@@ -317,18 +317,24 @@ def kill(args) -> int:
     bad = 0
     try:
         duration = 80.0 / args.speedup
-        for _ in range(args.kills):
-            c = kill_case(rng.uniform(0.1 * duration, 0.95 * duration), work, args.speedup, args.seed)
+        cases = [kill_case(rng.uniform(0.1 * duration, 0.95 * duration), work, args.speedup, args.seed)
+                 for _ in range(args.kills)]
+        # what one chunk holds, in seconds of this drive (a kill before the first chunk closed recovers nothing)
+        per_fix = sorted(c["raw_bytes_per_fix"] for c in cases if c["fixes"])
+        chunk_s = chunk_kb * 1024 / per_fix[len(per_fix) // 2] * GNSS_PERIOD_US / 1e6 if per_fix else float("inf")
+        for c in cases:
             # GNSS at 10 Hz: a fix lost is 0.1 s of the vehicle's time lost
             lost_s = max(0, c["fixes_sent"] - c["fixes"]) * GNSS_PERIOD_US / 1e6
-            chunk_s = chunk_kb * 1024 / c["raw_bytes_per_fix"] * GNSS_PERIOD_US / 1e6
             alarm_due = c["sent_s"] > ATTACK_US / 1e6 + 1.0
             ok = c["recover_rc"] == 0 and lost_s <= chunk_s + 1.0 and (c["alarm_logged"] or not alarm_due)
             bad += not ok
             print(f"killed {c['at_s']:4.1f} s in, at vehicle time {c['sent_s']:4.1f} s: {c['fixes']} of "
-                  f"{c['fixes_sent']} GNSS fixes recovered, {lost_s:4.1f} s lost (one {chunk_kb:.0f} kB chunk: "
-                  f"{chunk_s:4.1f} s), the alarm's record {'kept' if c['alarm_logged'] else 'absent'}"
-                  f"{'' if alarm_due else ' (none yet)'}" + ("" if ok else "   FAILED"))
+                  f"{c['fixes_sent']} GNSS fixes recovered, {lost_s:4.1f} s lost, the alarm's record "
+                  f"{'kept' if c['alarm_logged'] else 'absent'}{'' if alarm_due else ' (none yet)'}"
+                  + ("" if ok else "   FAILED"))
+        print(f"one {chunk_kb:.0f} kB chunk (log.chunk_kb) holds {chunk_s:.1f} s of this drive: the most a kill "
+              f"may lose; lost at most {max(max(0, c['fixes_sent'] - c['fixes']) for c in cases) / 10:.1f} s "
+              f"in {len(cases)} kills")
     finally:
         shutil.rmtree(work, ignore_errors=True)
     return 1 if bad else 0
