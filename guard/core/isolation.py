@@ -7,6 +7,8 @@ residual against the filter's track and heading), and from them names the sensor
 (magnetometer, GNSS velocity):
 - the magnetometer and the course turned alike, the gyro differently from both: the gyro bent the heading;
 - the gyro and the magnetometer alike, the course apart: a GNSS velocity (a spoof) pulled it;
+- the magnetometer apart from both, or its heading less the gyro's jumping (a bias bends, it cannot
+  step): the magnetometer; neither: the magnetometer, with the gyro as a suspect (a noisy course);
 - a GNSS velocity whose course agrees with the filter's heading but not with its track (the heading
   turned by the filter's own sideways velocity): the lateral accelerometer; on wheels only it pushes
   the track sideways.
@@ -101,7 +103,11 @@ class Witnesses:
             r, S = self.last_vel
             return Sensor.GNSS_VEL, (), CHANNELS[Sensor.GNSS_VEL][int(np.argmax(np.abs(r) / np.sqrt(np.diagonal(S))))]
         if sensor == Sensor.MAG:
-            return Sensor.MAG, (), None
+            # the magnetometer alone when it turned apart from the gyro and the course, they alike, or when
+            # it jumped (a gyro's bias bends the heading, it cannot step it); else the gyro stays a suspect
+            apart = abs(z_gm) >= TURN_Z[0] and abs(z_mc) >= TURN_Z[1] > abs(z_gc)
+            alone = apart or self.jumped(gyro_bias)
+            return Sensor.MAG, (() if alone else AMBIGUOUS[Sensor.MAG]), None
         last = [(w.r, w.sigma, w.r0) for w in self.course if w.t_us > self.course[-1].t_us - WITNESS_S * 1e6]
         n = len(last)
         r, s, r0 = np.mean(last, axis=0)
@@ -133,6 +139,24 @@ class Witnesses:
         tc = (tc - t0) / 1e6
         s_gc, e_gc = slope(tc, np.interp(tc, t, gyro) - np.unwrap(course), self.vel_sigma / speed.min())
         return s_gm / e_gm, s_gc / e_gc, (s_gc - s_gm) / math.hypot(e_gm, e_gc)
+
+    def jumped(self, gyro_bias: float) -> bool:
+        """Whether the magnetometer's heading less the gyro's, over the last 2 WITNESS_S, is told better
+        by one jump (two levels) than by a drift (a line): a step in the magnetometer, not a gyro bias."""
+        t, heading, rate = np.array(self.mag)[:, :3].T
+        t = (t - t[0]) / 1e6
+        d = np.unwrap(heading) - np.cumsum((rate - gyro_bias) * np.diff(t, prepend=0.0))
+        if len(d) < 4:
+            return False
+        line = np.polyval(np.polyfit(t, d, 1), t)
+        rss_line = float(np.sum((d - line) ** 2))
+        total = np.cumsum(d)
+        squares = np.cumsum(d * d)
+        n = len(d)
+        j = np.arange(1, n)
+        left = squares[j - 1] - total[j - 1] ** 2 / j
+        right = (squares[-1] - squares[j - 1]) - (total[-1] - total[j - 1]) ** 2 / (n - j)
+        return float(np.min(left + right)) < rss_line
 
     def lateral_bias(self, gyro_bias: float) -> float:
         """The lateral accelerometer's offset over the last 2 s: its mean reading less the centripetal
