@@ -32,6 +32,7 @@ from guard.model.sensors import AMBIGUOUS, CHANNELS, Sensor
 
 WITNESS_S = 1.0        # s of course residuals weighed when a heading alarm is isolated; turns compared over 2x
 WITNESS_Z = 2.0        # a witness disagrees with the filter when its mean residual is this many standard errors
+JUMP_Z2 = 9.0          # a jump tells better than a drift by this many heading variances (3 sigma)
 TURN_Z = (3.0, 2.0)    # two heading sources turned differently beyond the first, alike within the second (z)
 
 
@@ -156,7 +157,8 @@ class Witnesses:
         j = np.arange(1, n)
         left = squares[j - 1] - total[j - 1] ** 2 / j
         right = (squares[-1] - squares[j - 1]) - (total[-1] - total[j - 1]) ** 2 / (n - j)
-        return float(np.min(left + right)) < rss_line
+        # by more than chance: the best of n - 1 splits beats a line on noise alone by a few sigma^2
+        return rss_line - float(np.min(left + right)) > JUMP_Z2 * self.f.heading_sigma_rad ** 2
 
     def lateral_bias(self, gyro_bias: float) -> float:
         """The lateral accelerometer's offset over the last 2 s: its mean reading less the centripetal

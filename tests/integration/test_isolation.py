@@ -199,3 +199,23 @@ def test_the_tight_profile_catches_a_spoof_along_a_straight_within_15_s(tmp_path
         if seed == 8:
             late = [e for e in events_of(tlog) if isinstance(e, Alarm) and e.gnss_index >= k0]
             assert not late or late[0].gnss_index - k0 > 150, "the defaults caught it too: the test shows nothing"
+
+
+def test_a_gyro_bias_on_a_noisy_receiver_is_never_blamed_on_the_compass(tmp_path):
+    """A 2 Hz receiver with 0.25 m/s of velocity noise and a compass 3 degrees off: the GNSS course is too
+    noisy to witness which heading source turned, so a gyro bias's heading alarm names mag|gyro (or the
+    gyro), never the magnetometer alone."""
+    base = scenario.load("clean")
+    noisy = dataclasses.replace(base, name="iso-noisy", duration_s=45.0,
+                                attacks=(Attack("bias", "gyro", "z", 0.05, START_S),),
+                                rates=dataclasses.replace(base.rates, gnss_hz=2.0, imu_hz=25.0),
+                                noise=dataclasses.replace(base.noise, gnss_vel_white_mps=0.25, mag_offset_deg=3.0,
+                                                          gnss_vel_acc_reported=False))
+    named = []
+    for seed in range(6):
+        tlog = tmp_path / f"noisy-{seed}.tlog"
+        truth = run(noisy, seed, tlog=str(tlog))
+        a = first_alarm(events_of(tlog), truth["attacks"][0]["start_gnss_index"])
+        named.append((a.sensor, a.ambiguous_with))
+    assert ("mag", ()) not in named, named
+    assert all("gyro" in (s, *amb) for s, amb in named), named
