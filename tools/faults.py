@@ -266,18 +266,25 @@ def reboot(args) -> int:
 
 # -- kill -------------------------------------------------------------------------------------------
 
-def kill_case(at_s: float, workdir: Path, speedup: float, seed: int = 1) -> dict:
-    """`guard run --mcap` fed at `speedup` times real time, SIGKILLed at_s seconds of wall clock in;
-    then `guard mcap-recover` and the recovered file read back with the mcap library."""
+def guard_run(mcap: str = "") -> tuple[subprocess.Popen, int]:
+    """`guard run` as a process on a free UDP port (logging to `mcap` if given), once it listens."""
     port = free_udp_port()
-    logdir = workdir / f"kill-{at_s:.2f}"
-    logdir.mkdir()
-    proc = subprocess.Popen([sys.executable, "-m", "guard", "run", "--connect", f"udpin:127.0.0.1:{port}",
-                             "--mcap", str(logdir)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    command = [sys.executable, "-m", "guard", "run", "--connect", f"udpin:127.0.0.1:{port}"]
+    proc = subprocess.Popen(command + (["--mcap", mcap] if mcap else []), stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
     assert proc.stdout is not None
     for line in proc.stdout:
         if "listening on" in line:
             break
+    return proc, port
+
+
+def kill_case(at_s: float, workdir: Path, speedup: float, seed: int = 1) -> dict:
+    """`guard run --mcap` fed at `speedup` times real time, SIGKILLed at_s seconds of wall clock in;
+    then `guard mcap-recover` and the recovered file read back with the mcap library."""
+    logdir = workdir / f"kill-{at_s:.2f}"
+    logdir.mkdir()
+    proc, port = guard_run(str(logdir))
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
     start, last_t_us, fixes_sent = time.monotonic(), 0, 0
@@ -397,14 +404,7 @@ def rss_mb(pid: int) -> float:
 def memory(args) -> int:
     """`guard run` as a process (its memory alone: the simulator's grows with its record of the drive),
     fed a clean drive of `--minutes`, its resident memory read every minute of the drive."""
-    port = free_udp_port()
-    command = [sys.executable, "-m", "guard", "run", "--connect", f"udpin:127.0.0.1:{port}"]
-    proc = subprocess.Popen(command + (["--mcap", args.mcap] if args.mcap else []), stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
-    assert proc.stdout is not None
-    for line in proc.stdout:
-        if "listening on" in line:
-            break
+    proc, port = guard_run(args.mcap)
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
     start, series, next_minute = time.monotonic(), [], 0
