@@ -16,6 +16,10 @@ install: $(BIN)/python
 # opencv, wxPython: hundreds of MB a headless router does not use); its light ones are in [test].
 MAVPROXY := MAVProxy==1.8.75
 
+# The suite on every core, each test file on one worker (its module fixtures run once); about 6
+# minutes on 2 cores, 10 on one. `make test PYTEST_ARGS=` runs it serially.
+PYTEST_ARGS ?= -n auto --dist loadfile
+
 install-test: $(BIN)/python
 	$(BIN)/python -m pip install --quiet -e '.[test]'
 	$(BIN)/python -m pip install --quiet --no-deps '$(MAVPROXY)'
@@ -24,7 +28,7 @@ demo: install
 	$(BIN)/guard demo
 
 test: install-test
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest $(PYTEST_ARGS)
 
 clean:
 	rm -rf $(VENV) build *.egg-info

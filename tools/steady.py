@@ -1,11 +1,12 @@
 """The steady suite: the whole test suite, N times in a row on a fresh clone, stopping at the first failure.
 
-    python tools/steady.py --runs 20                 # 20 full runs of HEAD (about 11 minutes each on 2 cores)
-    python tools/steady.py --runs 5 -- tests/unit    # pytest arguments after --
+    python tools/steady.py --runs 20                 # 20 full runs of HEAD (about 6 minutes each on 2 cores)
+    python tools/steady.py --runs 5 -- tests/unit    # pytest arguments after -- (instead of make test's)
 
 A flaky test blocks landings at random; this finds one before CI does. The clone is of the commit
 checked out (uncommitted changes are not in it), installed once with the README's test command
-(`make install-test`), then `python -m pytest` is run N times with the same arguments. Each run's
+(`make install-test`), then `python -m pytest` is run N times with the arguments `make test` gives it
+(the Makefile's PYTEST_ARGS: every core, a test file per worker) unless others follow `--`. Each run's
 outcome and time is printed as it ends, and the summary names the failing run's first failures;
 the exit status is that of the first failing run (0 if none failed).
 """
@@ -13,6 +14,8 @@ the exit status is that of the first failing run (0 if none failed).
 from __future__ import annotations
 
 import argparse
+import re
+import shlex
 import subprocess
 import sys
 import tempfile
@@ -20,6 +23,12 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+def make_test_args(clone: Path) -> list[str]:
+    """The pytest arguments `make test` passes (the Makefile's `PYTEST_ARGS ?= ...`)."""
+    m = re.search(r"^PYTEST_ARGS\s*\?=(.*)$", (clone / "Makefile").read_text(), re.M)
+    return shlex.split(m.group(1)) if m else []
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -36,10 +45,12 @@ def main(argv: list[str] | None = None) -> int:
     print(f"steady: {args.runs} runs of {head} in {clone}", flush=True)
     subprocess.run(["make", "install-test"], cwd=clone, check=True)
     python = clone / ".venv" / "bin" / "python"
+    pytest_args = args.pytest_args or make_test_args(clone)
+    print(f"steady: python -m pytest {shlex.join(pytest_args)}", flush=True)
     times = []
     for i in range(1, args.runs + 1):
         start = time.monotonic()
-        run = subprocess.run([str(python), "-m", "pytest", "-q", "-p", "no:cacheprovider", *args.pytest_args],
+        run = subprocess.run([str(python), "-m", "pytest", "-q", "-p", "no:cacheprovider", *pytest_args],
                              cwd=clone, capture_output=True, text=True)
         times.append(time.monotonic() - start)
         tail = run.stdout.strip().splitlines()[-1] if run.stdout.strip() else run.stderr.strip()[-200:]
