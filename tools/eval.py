@@ -99,7 +99,8 @@ def main(argv=None) -> int:
         return 2
     if args.figure:
         # one detector: the first of --detectors (cusum unless told)
-        return figure(args.figure[0], int(args.figure[1]), Path(args.out), tuple(args.set), args.detectors[0])
+        return figure(args.figure[0], int(args.figure[1]), Path(args.out), tuple(args.set), args.detectors[0],
+                      args.vehicles)
     todo = cases(args.families)
     if args.quick:
         args.seeds = min(args.seeds, 3)
@@ -135,7 +136,7 @@ def main(argv=None) -> int:
     plots(summary, rows, out)
     cols = ["case", "detector", "detection_rate", "median_delay_samples", "p95_delay_samples", "median_delay_s",
             "p95_delay_s", "false_alarms_per_h", "isolation_rate", "ambiguous_rate", "p95_error_at_alarm_m", "worst_error_30s_after_m",
-            "delay_over_lorden", "max_peak_ratio", "extrapolated_fa_interval_h", "named"]
+            "lorden_bound_s", "delay_over_lorden", "max_peak_ratio", "extrapolated_fa_interval_h", "named"]
     print(" | ".join(cols))
     for s in summary:
         print(" | ".join("" if s.get(c) is None else (f"{s[c]:.2f}" if isinstance(s[c], float) else

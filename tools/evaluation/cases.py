@@ -11,6 +11,7 @@ from guard_sim import scenario as scenarios
 from guard_sim.scenario import Attack
 
 START_S = 30.0
+EARLY_SAMPLE = 5        # the `early` family's step: at this GNSS sample, after a clean start
 ALL_FAMILIES = ("step", "ramp", "spoof", "freeze", "imu", "early", "clean", "paper")
 SPOOF_PHASE_S = 9.0
 
@@ -37,7 +38,8 @@ def cases(families: list[str]) -> list[tuple[str, str, tuple[Attack, ...], float
         out.append(("imu", "mag x bias 0.05 G", (Attack("bias", "mag", "x", 0.05, START_S),), 60.0))
         out.append(("imu", "mag x ramp 0.01 G/s", (Attack("ramp", "mag", "x", 0.01, START_S),), 60.0))
     if "early" in families:
-        out.append(("early", "step north 5 m at sample 5", (Attack("step", "gnss_pos", "north", 5.0, 0.5),), 40.0))
+        out.append(("early", f"step north 5 m at sample {EARLY_SAMPLE}",
+                    (Attack("step", "gnss_pos", "north", 5.0, EARLY_SAMPLE / 10.0),), 40.0))
     if "paper" in families:     # the paper's own scenario (its route, rates and attack), not the clean drive's
         paper = scenarios.load("paper")
         out.append(("paper", "paper scenario", paper.attacks, paper.duration_s))
@@ -52,6 +54,10 @@ def base_scenario(family: str, duration: float, attacks: tuple, vehicle: dict | 
     """The scenario of one run: the paper's for its family, else the clean drive with the case's
     attacks; on `vehicle` (vehicle()) if given."""
     base = scenarios.load("paper" if family == "paper" else "clean")
+    if vehicle and family == "early":
+        # "at sample 5" at the vehicle's GNSS rate (0.5 s is sample 5 only at 10 Hz; at 2 Hz it is the
+        # second fix, which the filter, just started on the first, takes in whole)
+        attacks = tuple(dataclasses.replace(a, start_s=EARLY_SAMPLE / vehicle["gnss_hz"]) for a in attacks)
     sc = dataclasses.replace(base, name="eval", duration_s=duration, attacks=attacks)
     if vehicle:
         rates = {k: v for k, v in vehicle.items() if k in ("imu_hz", "gnss_hz")}

@@ -6,12 +6,14 @@ import sys
 from pathlib import Path
 
 from guard_sim.run import run
-from tools.evaluation.cases import ALL_FAMILIES, base_scenario, cases, detector_config, phased, sim_seed
+from tools.evaluation.cases import ALL_FAMILIES, base_scenario, cases, detector_config, phased, sim_seed, vehicle
 
 
-def figure(case: str, seed: int, out: Path, settings: tuple[str, ...] = (), detector: str = "cusum") -> int:
+def figure(case: str, seed: int, out: Path, settings: tuple[str, ...] = (), detector: str = "cusum",
+           vehicles: bool = False) -> int:
     """One run of one case: its tlog and truth, the replay report (`detector`, with `settings`) and
-    the three-panel figure."""
+    the three-panel figure; with `vehicles`, on the second family's vehicle of that seed, as the
+    campaign ran it."""
     from guard.sinks.plot import plot
     from guard.runtime.replay import replay, write_report
     from guard.sinks.plot import Trace
@@ -24,7 +26,7 @@ def figure(case: str, seed: int, out: Path, settings: tuple[str, ...] = (), dete
     attacks, duration = phased(family, attacks, duration, seed)
     out.mkdir(parents=True, exist_ok=True)
     stem = out / f"{name.replace(' ', '_').replace('/', '_')}-seed{seed}"
-    sc = base_scenario(family, duration, attacks)
+    sc = base_scenario(family, duration, attacks, vehicle(seed) if vehicles else None)
     truth = run(sc, sim_seed(family, attacks, seed), tlog=f"{stem}.tlog")
     trace = Trace()
     report = replay(f"{stem}.tlog", detector_config(detector, settings), listeners=(trace,))
