@@ -3,6 +3,7 @@ side by side on steps, a freeze and an early attack, with the figures asserted."
 
 import importlib.util
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -146,3 +147,22 @@ def test_an_interrupted_campaign_is_not_overwritten_unasked(harness, tmp_path, c
     assert harness.main(["--families", "early", "--seeds", "1", "--detectors", "cusum", "--out", str(tmp_path)]) == 2
     assert "--resume" in capsys.readouterr().err
     assert (tmp_path / harness.PARTIAL).read_text().startswith('{"key"'), "left as it was"
+
+
+def test_a_vehicle_s_early_step_is_at_its_fifth_fix_and_its_bound_at_its_own_rate(harness):
+    """The second family's early step starts at GNSS sample 5 of each vehicle's rate (not at 0.5 s,
+    the second fix of a 2 Hz receiver), and Lorden's bound is per vehicle: the same innovation
+    variance gives the same bound in samples, so twice the seconds at half the rate."""
+    from tools.evaluation.cases import EARLY_SAMPLE, base_scenario, cases, vehicle
+    from tools.evaluation.summary import lorden
+    (family, _, attacks, duration), = cases(["early"])
+    for seed in range(12):
+        car = vehicle(seed)
+        sc = base_scenario(family, duration, attacks, car)
+        assert sc.rates.gnss_hz == car["gnss_hz"]
+        assert sc.attacks[0].start_s == pytest.approx(EARLY_SAMPLE / car["gnss_hz"])
+    assert base_scenario(family, duration, attacks).attacks[0].start_s == pytest.approx(EARLY_SAMPLE / 10.0)
+    slow, fast = ({"S_pos": 0.3, "vehicle": json.dumps({"gnss_hz": hz})} for hz in (1.0, 2.0))
+    (b1, hz1), (b2, hz2) = lorden(2.0, slow, 1000.0), lorden(2.0, fast, 1000.0)
+    assert b1 < b2 < b1 * 1.1 and b1 / hz1 > 1.8 * b2 / hz2      # ln(ARL0) grows with the rate, slowly
+    assert b1 == pytest.approx(math.log(1000 * 3600) / (4 / 0.6))
