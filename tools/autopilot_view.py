@@ -1,0 +1,172 @@
+"""What the autopilot's own log says where guard raised an alarm: was the inconsistency in the data?
+
+    python tools/autopilot_view.py FLIGHT.bin                 # every alarm of `guard replay FLIGHT.bin`
+    python tools/autopilot_view.py FLIGHT.bin --at 260.1      # a time of the log (s), alarm or not
+    python tools/autopilot_view.py FLIGHT.bin --window 4 --json view.json
+
+An ArduPilot DataFlash log carries its EKF's own GNSS velocity innovations (XKF3 for EKF3, NKF3 for
+EKF2, EKF3 for EKF1: IVN, IVE, in m/s) and the IMU's vibration (VIBE: VibeX..Z in m/s/s, Clip). For
+each time asked (by default each alarm of guard's replay), over the `--window` seconds before it:
+the mean of the autopilot's velocity innovations north and east, and where that mean ranks among
+every such window of the log before it (1 = the largest so far); the vibration's mean and maximum
+per axis and the clipping counted in the window. ArduPilot calls vibration under 30 m/s/s
+acceptable; its EKF gates a velocity innovation only far past these sizes, so a persistent
+innovation of a few tenths of a m/s shows in its log without a warning.
+
+ArduPilot's innovation is its estimate less the measurement, guard's the measurement less its
+estimate: the same inconsistency has opposite signs in the two.
+
+An alarm at which the autopilot's own filter saw the same inconsistency (the same axis and sign,
+the largest window of its flight so far) came from the data, not from guard's model of it; whether
+the data was attacked, faulty (vibration) or a manoeuvre the autopilot's attitude did not follow is
+for the operator, and this is what to look at. guard's own replay gives the alarms and their times
+(the log's TimeUS, the same base). ULog and tlogs are not read: DataFlash only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+INNOVATIONS = ("XKF3", "NKF3", "EKF3")       # EKF3, EKF2, EKF1: IVN, IVE (m/s), core 0
+ACCEPTABLE_VIBE = 30.0                        # m/s/s, ArduPilot's guidance
+
+
+def read(path: str) -> dict[str, np.ndarray]:
+    """The log's EKF velocity innovations (t s, IVN, IVE; core 0 of the EKF the autopilot flew on,
+    AHRS_EKF_TYPE, else the first type found) and vibration
+    (t s, VibeX, VibeY, VibeZ, clip count summed over the IMUs; the first IMU)."""
+    from pymavlink import DFReader
+    log = DFReader.DFReader_binary(path, zero_time_base=True)
+    innov: dict[str, list] = {t: [] for t in INNOVATIONS}
+    vibe: list = []
+    while (m := log.recv_match(type=[*INNOVATIONS, "VIBE"])) is not None:
+        kind = m.get_type()
+        if getattr(m, "C", 0) not in (0, None) or getattr(m, "IMU", 0) not in (0, None):
+            continue                               # core 0, the first IMU
+        t = m.TimeUS / 1e6
+        if kind == "VIBE":
+            clip = sum(getattr(m, f"Clip{i}", 0) or 0 for i in range(3)) + (getattr(m, "Clip", 0) or 0)
+            vibe.append((t, m.VibeX, m.VibeY, m.VibeZ, clip))
+        elif hasattr(m, "IVN") and hasattr(m, "IVE"):
+            innov[kind].append((t, m.IVN, m.IVE))
+    used = {2: "NKF3", 3: "XKF3"}.get(int(log.params.get("AHRS_EKF_TYPE", 0) or 0))   # the EKF it flew on
+    kind = used if used and innov[used] else next((k for k in INNOVATIONS if innov[k]), None)
+    return {"ekf": kind, "innovations": np.array(innov[kind] if kind else [], dtype=float).reshape(-1, 3),
+            "vibe": np.array(vibe, dtype=float).reshape(-1, 5)}
+
+
+def window_means(innov: np.ndarray, window: float) -> np.ndarray:
+    """(end time, mean IVN, mean IVE) of every window of `window` s, ends 1 s apart."""
+    if len(innov) == 0:
+        return np.empty((0, 3))
+    ends = np.arange(innov[0, 0] + window, innov[-1, 0] + 1.0, 1.0)
+    out = []
+    for end in ends:
+        s = (innov[:, 0] > end - window) & (innov[:, 0] <= end)
+        if s.any():
+            out.append((end, *innov[s, 1:].mean(axis=0)))
+    return np.array(out).reshape(-1, 3)
+
+
+def view(data: dict, at: float, window: float) -> dict:
+    """The autopilot's view over the `window` s before `at` (s, the log's time)."""
+    out: dict = {"at_s": round(at, 2), "window_s": window, "ekf": data["ekf"]}
+    innov, vibe = data["innovations"], data["vibe"]
+    s = (innov[:, 0] > at - window) & (innov[:, 0] <= at) if len(innov) else np.zeros(0, bool)
+    if s.any():
+        means = window_means(innov[innov[:, 0] <= at], window)
+        for i, axis in ((1, "north"), (2, "east")):
+            m = float(innov[s, i].mean())
+            earlier = np.abs(means[means[:, 0] <= at, i])
+            out[f"innovation_{axis}_mps"] = round(m, 3)
+            out[f"innovation_{axis}_rank"] = int((earlier > abs(m) + 1e-9).sum()) + 1
+            out[f"innovation_{axis}_windows"] = int(len(earlier)) + 1      # and this one
+    v = (vibe[:, 0] > at - window) & (vibe[:, 0] <= at) if len(vibe) else np.zeros(0, bool)
+    if v.any():
+        out["vibe_mean"] = [round(float(x), 1) for x in vibe[v, 1:4].mean(axis=0)]
+        out["vibe_max"] = [round(float(x), 1) for x in vibe[v, 1:4].max(axis=0)]
+        before = vibe[vibe[:, 0] <= at - window, 4]
+        out["clipping"] = int(vibe[v, 4].max() - (before[-1] if len(before) else vibe[v, 4].min()))
+    return out
+
+
+def say(v: dict, alarm: dict | None) -> str:
+    head = f"{v['at_s']:.2f} s"
+    if alarm:
+        names = "|".join([alarm["sensor"], *alarm["ambiguous_with"]])
+        head += f": guard's alarm {names} {alarm['channel']} {alarm['offset']:+.2f}"
+    lines = [head]
+    if "innovation_north_mps" in v:
+        lines.append(f"  the autopilot's {v['ekf']} GNSS velocity innovation over the {v['window_s']:g} s before: "
+                     f"north {v['innovation_north_mps']:+.2f} m/s (rank {v['innovation_north_rank']} of "
+                     f"{v['innovation_north_windows']} windows up to it), east {v['innovation_east_mps']:+.2f} m/s "
+                     f"(rank {v['innovation_east_rank']} of {v['innovation_east_windows']})")
+    else:
+        lines.append("  no EKF velocity innovations in the log there (XKF3/NKF3/EKF3)")
+    if "vibe_mean" in v:
+        worst = max(v["vibe_max"])
+        lines.append(f"  vibration (m/s/s, x y z): mean {' '.join(f'{x:g}' for x in v['vibe_mean'])}, "
+                     f"max {' '.join(f'{x:g}' for x in v['vibe_max'])}"
+                     f"{' (over ArduPilot' + chr(39) + 's 30)' if worst > ACCEPTABLE_VIBE else ''}; "
+                     f"clipping {v['clipping']}")
+    else:
+        lines.append("  no VIBE in the log there")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("log", help="an ArduPilot DataFlash log (.bin)")
+    p.add_argument("--at", type=float, action="append", help="a time of the log in s (repeatable); "
+                   "default: each alarm of guard's replay")
+    p.add_argument("--window", type=float, default=4.0, help="seconds before each time (default 4)")
+    p.add_argument("--json", help="write the views as JSON here")
+    args = p.parse_args(argv)
+    from guard.errors import GuardError
+    from guard.sources import log_format
+    try:
+        kind = log_format(args.log)
+    except GuardError as e:
+        print(f"autopilot_view: {e}", file=sys.stderr)
+        return 2
+    if kind != "dataflash":
+        print(f"autopilot_view: {args.log}: {kind or 'not a log guard reads'}, not DataFlash: only an "
+              "ArduPilot DataFlash log carries its EKF's innovations", file=sys.stderr)
+        return 2
+    try:
+        data = read(args.log)
+    except Exception as e:                         # pymavlink raises what it raises on a cut or corrupt file
+        print(f"autopilot_view: {args.log}: pymavlink could not read it ({type(e).__name__}: {e})", file=sys.stderr)
+        return 2
+    alarms: list[dict] = []
+    if not args.at:
+        from guard.config import Config
+        from guard.runtime.replay import replay
+        try:
+            alarms = replay(args.log, Config())["alarms"]
+        except GuardError as e:
+            print(f"autopilot_view: {e}", file=sys.stderr)
+            return 2
+        if not alarms:
+            print(f"{args.log}: guard raised no alarm; --at T to look at a time")
+    times = [(a["time_usec"] / 1e6, a) for a in alarms] or [(t, None) for t in args.at or []]
+    views = []
+    for t, alarm in times:
+        v = view(data, t, args.window)
+        print(say(v, alarm))
+        views.append({**v, "alarm": alarm})
+    if args.json:
+        Path(args.json).write_text(json.dumps(views, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
