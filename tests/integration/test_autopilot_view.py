@@ -3,23 +3,15 @@ own EKF saw the same GNSS velocity inconsistency (the same axis and direction, i
 flight so far), under vibration past ArduPilot's guidance. The shared data folder sits beside the
 project; without it the real-log test skips."""
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import pytest
-
-ROOT = Path(__file__).resolve().parents[2]
+from toolbox import load_tool
 
 
 @pytest.fixture(scope="module")
 def tool():
-    spec = importlib.util.spec_from_file_location("autopilot_view", ROOT / "tools" / "autopilot_view.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["autopilot_view"] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_tool("autopilot_view")
 
 
 def test_at_the_crash_flight_s_alarm_the_autopilot_saw_the_same(tool, shared, tmp_path, capsys):

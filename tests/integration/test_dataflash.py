@@ -9,11 +9,9 @@ far as they can, or fail with a SourceError naming the file, never with a traceb
 
 import dataclasses
 import datetime
-import importlib.util
 import json
 import random
 import re
-import struct
 import subprocess
 import sys
 from concurrent.futures import ProcessPoolExecutor
@@ -21,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from toolbox import load_tool
 
 from guard.errors import SourceError
 from guard.model.samples import GnssFix, ImuSample, VehicleType
@@ -41,11 +40,7 @@ SEEDS = (0, 1)
 
 def eval_cases() -> dict[str, tuple]:
     """The attacks of tools/eval.py's cases named in CASES, started at START_S."""
-    spec = importlib.util.spec_from_file_location("guard_eval", ROOT / "tools" / "eval.py")
-    harness = sys.modules.get("guard_eval") or importlib.util.module_from_spec(spec)
-    if "guard_eval" not in sys.modules:
-        sys.modules["guard_eval"] = harness
-        spec.loader.exec_module(harness)
+    harness = load_tool("eval", as_name="guard_eval")
     found = {name: attacks for _, name, attacks, _ in harness.cases(["step", "ramp", "spoof", "freeze", "imu"])}
     return {name: tuple(dataclasses.replace(a, start_s=START_S) for a in found[name]) for name in CASES}
 

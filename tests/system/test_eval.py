@@ -1,24 +1,19 @@
 """A reduced evaluation campaign (the harness in tools/eval.py, a couple of minutes): the detectors
 side by side on steps, a freeze and an early attack, with the figures asserted."""
 
-import importlib.util
 import json
 import math
-import sys
 from pathlib import Path
 
 import pytest
+from toolbox import load_tool
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
 def harness():
-    spec = importlib.util.spec_from_file_location("guard_eval", ROOT / "tools" / "eval.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["guard_eval"] = module          # so its worker processes can find the job function
-    spec.loader.exec_module(module)
-    return module
+    return load_tool("eval", as_name="guard_eval")    # its worker processes find the job function by it
 
 
 @pytest.fixture(scope="module")

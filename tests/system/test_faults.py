@@ -2,29 +2,20 @@
 reboot and a lone wild time stamp, SIGKILL then mcap-recover, a full disk. The daemon is the real one on
 UDP loopback; the disk is a real tmpfs (skipped where it cannot be mounted)."""
 
-import importlib.util
 import os
 import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
 import pytest
+from toolbox import load_tool
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def load_tool():
-    spec = importlib.util.spec_from_file_location("faults", ROOT / "tools" / "faults.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["faults"] = module
-    spec.loader.exec_module(module)
-    return module
-
-
 @pytest.fixture(scope="module")
 def tool():
-    return load_tool()
+    return load_tool("faults")
 
 
 def test_a_silent_link_is_said_and_the_attack_still_caught(tool):

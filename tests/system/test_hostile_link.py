@@ -2,23 +2,11 @@
 datagrams per genuine frame (garbage, cut frames, stray bytes, other systems, other senders) gives the
 same alarm at the same GNSS sample as without them, no false alarm, and the daemon alive."""
 
-import importlib.util
-import sys
-from pathlib import Path
-
-ROOT = Path(__file__).resolve().parents[2]
-
-
-def load_tool():
-    spec = importlib.util.spec_from_file_location("hostile_link", ROOT / "tools" / "hostile_link.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["hostile_link"] = module
-    spec.loader.exec_module(module)
-    return module
+from toolbox import load_tool
 
 
 def test_hostile_frames_change_nothing_guard_does():
-    tool = load_tool()
+    tool = load_tool("hostile_link")
     frames = tool.genuine()
     clean = tool.run(0.0, 1, frames)
     bad = tool.run(2.0, 1, frames)
