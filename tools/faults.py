@@ -273,9 +273,17 @@ def guard_run(mcap: str = "") -> tuple[subprocess.Popen, int]:
     proc = subprocess.Popen(command + (["--mcap", mcap] if mcap else []), stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
     assert proc.stdout is not None
+    said = []
     for line in proc.stdout:
+        said.append(line)
         if "listening on" in line:
             break
+    else:
+        raise RuntimeError(f"guard run exited ({proc.wait()}) before listening: {''.join(said)[-2000:]}")
+    # read on, so that a daemon saying much never blocks on a full pipe; what it says is kept
+    proc.said = said                                          # type: ignore[attr-defined]
+    proc.reader = threading.Thread(target=lambda: said.extend(proc.stdout), daemon=True)   # type: ignore
+    proc.reader.start()
     return proc, port
 
 
@@ -422,8 +430,9 @@ def memory(args) -> int:
     series.append((args.minutes, rss_mb(proc.pid)))
     alive = proc.poll() is None
     proc.send_signal(signal.SIGINT)
-    out, _ = proc.communicate(timeout=30)
-    summary = next((line for line in out.splitlines() if "stopped after" in line), "")
+    proc.wait(timeout=30)
+    proc.reader.join(timeout=10)                 # to the end of what it said
+    summary = next((line for line in proc.said if "stopped after" in line), "")
     alarms = int(summary.split(" alarm(s)")[0].rsplit(" ", 1)[-1]) if " alarm(s)" in summary else -1
     sock.close()
     base = next((mb for minute, mb in series if minute >= 5), series[0][1])
