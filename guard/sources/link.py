@@ -177,6 +177,7 @@ class MavlinkLink:
             self.conn.mav.file = self._out      # pymavlink's write would send to every address seen
         self._tail = b""                    # a stream's incomplete frame
         self._pending: deque = deque()
+        self._draining = False              # drain(): other systems are expected (a ground station)
 
     def _first_destination(self, url: str):
         """Where a UDP link sends before a peer is heard: udpout's and udpbcast's address, udpin's none."""
@@ -209,13 +210,17 @@ class MavlinkLink:
     def drain(self, most: int = 256) -> int:
         """Read what is waiting (at most `most` reads), without blocking, and drop its samples: a link
         that carries only guard's own messages (the alarms of a monitor reading CAN, `link.gcs`) still
-        hears its peer, the one it answers, and its socket does not fill. Returns the reads made."""
+        hears its peer, the one it answers, and its socket does not fill. Frames of other systems (the
+        ground station's own) are not counted as skipped there. Returns the reads made."""
         n = 0
+        self._draining = True
         try:
             while n < most and self._read():
                 n += 1
         except OSError as e:
             log.debug("receive error: %s", e)
+        finally:
+            self._draining = False
         self._pending.clear()
         return n
 
@@ -259,7 +264,11 @@ class MavlinkLink:
         if frame.component == COMPONENT_ID and frame.system == (self.system_id or 1):
             return None         # our own, echoed back
         if self.system_id and frame.system != self.system_id:
-            self.skip("other_system")
+            if self._draining:      # a link guard only sends on: a ground station's frames are no skipped
+                if addr is not None:                # sample, and a udpin one answers the first it heard
+                    self._from_peer(addr)
+            else:
+                self.skip("other_system")
             return None
         try:
             msg = self.conn.mav.decode(bytearray(frame.buf))     # records the signed stream's time stamp
@@ -279,11 +288,12 @@ class MavlinkLink:
             silent_s = now - self._peer_heard
             if self.peer is not None and silent_s <= self.cfg.link_timeout_s:
                 return False
+            who = "guard's peer" if self._draining else "the autopilot"    # drained: whoever talks to it
             if self.peer is None:
-                log.info("MAVLink link: the autopilot is at %s:%d", *addr)
+                log.info("MAVLink link: %s is at %s:%d", who, *addr)
             else:
-                log.warning("MAVLink link: the autopilot moved from %s:%d to %s:%d (silent for %.0f s)",
-                            *self.peer, *addr, silent_s)
+                log.warning("MAVLink link: %s moved from %s:%d to %s:%d (silent for %.0f s)",
+                            who, *self.peer, *addr, silent_s)
             self.peer = addr
             if self._follow_peer:
                 self._out.to = addr

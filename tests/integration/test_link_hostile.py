@@ -377,3 +377,28 @@ def test_skip_log_writes_one_line_per_reason_per_period(caplog):
         mine = [line for line in lines if reason in line]
         assert [int(line.split()[3]) for line in mine] == [1, 10, 10, 4], mine
     assert sum(r.levelno == logging.WARNING for r in caplog.records) == 4     # other_address warns
+
+
+def test_a_link_guard_only_sends_on_hears_its_ground_station_without_counting_it():
+    """link.gcs (or the alarm link of a monitor reading CAN) is drained, not read for samples: the
+    ground station's own HEARTBEATs there teach it the peer and are not 'other_system' skips."""
+    link, addr = open_link()
+    gcs, tx = sender(system=255), udp_socket()
+    try:
+        for _ in range(5):
+            tx.sendto(bytes(gcs.heartbeat_encode(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+                            .pack(gcs)), addr)
+        deadline = time.monotonic() + 3.0
+        drained = 0
+        while drained < 5 and time.monotonic() < deadline:
+            drained += link.drain()
+            time.sleep(0.01)
+        assert drained == 5
+        assert link.peer == tx.getsockname()            # it answers the ground station
+        assert "other_system" not in link.skipped, link.skipped
+        tx.sendto(gps(gcs, 1_000_000), addr)            # read as a source, the same frame is counted
+        assert not collect(link, lambda got: False, timeout_s=0.3)
+        assert link.skipped["other_system"] == 1
+    finally:
+        link.close()
+        tx.close()
