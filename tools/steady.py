@@ -6,7 +6,9 @@
 A flaky test blocks landings at random; this finds one before CI does. The clone is of the commit
 checked out (uncommitted changes are not in it), installed once with the README's test command
 (`make install-test`), then `python -m pytest` is run N times with the arguments `make test` gives it
-(the Makefile's PYTEST_ARGS: every core, a test file per worker) unless others follow `--`. Each run's
+(the Makefile's PYTEST_ARGS: every core, a test file per worker) unless others follow `--`. The
+shared data folder beside the checkout, where there is one, is linked beside the clone, so that the
+tests of the real logs run rather than skip. Each run's
 outcome and time is printed as it ends, and the summary names the failing run's first failures;
 the exit status is that of the first failing run (0 if none failed).
 """
@@ -42,6 +44,9 @@ def main(argv: list[str] | None = None) -> int:
     head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
                           check=True).stdout.strip()
     subprocess.run(["git", "clone", "--quiet", str(ROOT), str(clone)], check=True)
+    shared = ROOT.parent / "shared"
+    if shared.is_dir():         # the real logs beside the clone too, so that the tests reading them run
+        (work / "shared").symlink_to(shared)
     print(f"steady: {args.runs} runs of {head} in {clone}", flush=True)
     subprocess.run(["make", "install-test"], cwd=clone, check=True)
     python = clone / ".venv" / "bin" / "python"
