@@ -32,7 +32,10 @@ median and 95th-percentile delay (GNSS samples and seconds) from that sample, fa
 alarm (what the attack did before it was caught), isolation (the first alarm after the attack names
 the attacked sensor alone), ambiguity (it names the attacked sensor among others it cannot tell
 apart; what it named is in runs.csv), the estimate's worst position error from the alarm to 30 s
-after it (GNSS attacks), and for steps the median delay over the Lorden bound ln(ARL0)/I, I = nu^2 / (2 S).
+after it (GNSS attacks), and for steps the median delay over the Lorden bound ln(ARL0)/I, I = nu^2 / (2 S);
+for the ramps and the gyro and accelerometer biases, which grow, the information bound: the time at
+which the sum of mean(t)^2 / (2 S) over the tested samples since the onset reaches ln(ARL0)
+(tools/evaluation/summary.py, information_bound), and guard's time over it (delay_over_bound).
 For cusum, the largest statistic / threshold of each run (peak_ratio): over the clean runs it is the
 threshold's measured margin, and fa_vs_threshold.png shows the share of clean runs that would have
 alarmed had every threshold been scaled by a factor (an ROC-like curve, from clean runs only);
@@ -136,7 +139,7 @@ def main(argv=None) -> int:
     plots(summary, rows, out)
     cols = ["case", "detector", "detection_rate", "median_delay_samples", "p95_delay_samples", "median_delay_s",
             "p95_delay_s", "false_alarms_per_h", "isolation_rate", "ambiguous_rate", "p95_error_at_alarm_m", "worst_error_30s_after_m",
-            "lorden_bound_s", "delay_over_lorden", "max_peak_ratio", "extrapolated_fa_interval_h", "named"]
+            "lorden_bound_s", "delay_over_lorden", "information_bound_s", "delay_over_bound", "max_peak_ratio", "extrapolated_fa_interval_h", "named"]
     print(" | ".join(cols))
     for s in summary:
         print(" | ".join("" if s.get(c) is None else (f"{s[c]:.2f}" if isinstance(s[c], float) else

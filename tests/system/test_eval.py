@@ -161,3 +161,46 @@ def test_a_vehicle_s_early_step_is_at_its_fifth_fix_and_its_bound_at_its_own_rat
     (b1, hz1), (b2, hz2) = lorden(2.0, slow, 1000.0), lorden(2.0, fast, 1000.0)
     assert b1 < b2 < b1 * 1.1 and b1 / hz1 > 1.8 * b2 / hz2      # ln(ARL0) grows with the rate, slowly
     assert b1 == pytest.approx(math.log(1000 * 3600) / (4 / 0.6))
+
+
+def test_the_information_bound_of_growing_attacks():
+    """A ramp or a bias grows in the innovations: the bound is the time at which the information its
+    samples carry reaches ln(ARL0). A constant signal gives Lorden's bound; a noisier or slower
+    receiver, a later one; an accelerometer bias, seen in velocity and position, an earlier one than
+    in velocity alone."""
+    from tools.evaluation.summary import growing_bounds, information_bound, lorden, signature
+    step = (("gnss_pos", lambda t: 2.0),)
+    samples, _ = lorden(2.0, {"S_pos": 1.0, "vehicle": {"gnss_hz": 1.0}}, 1000.0)
+    assert information_bound(step, {"gnss_pos": 1.0}, {"gnss_pos": 1.0}, 1000.0) == math.ceil(samples)
+    ramp = signature("ramp north 0.3 m/s")
+    quiet = information_bound(ramp, {"gnss_pos": 0.3}, {"gnss_pos": 10.0}, 1000.0)
+    noisy = information_bound(ramp, {"gnss_pos": 4.0}, {"gnss_pos": 10.0}, 1000.0)
+    slow = information_bound(ramp, {"gnss_pos": 4.0}, {"gnss_pos": 1.0}, 1000.0)
+    assert quiet < noisy < slow
+    # the sum over samples of (v t)^2 / 2S reaches ln(ARL0) between the sample before and the bound
+    need = math.log(1000 * 3600 * 1.0)
+    info = lambda T: sum((0.3 * i) ** 2 / 8.0 for i in range(1, int(T) + 1))     # noqa: E731
+    assert info(slow - 1) < need <= info(slow)
+    accel = signature("accel x bias 0.5 m/s2")
+    S, hz = {"gnss_pos": 4.0, "gnss_vel": 0.07}, {"gnss_pos": 1.0, "gnss_vel": 1.0}
+    assert information_bound(accel, S, hz, 1000.0) <= information_bound(accel[:1], S, hz, 1000.0)
+    assert information_bound(signature("gyro z bias 0.05 rad/s"), {"mag": 4e-4}, {"mag": None}, 1000.0) is None
+    # per run of a summary row: guard's time from the onset (its delay plus one GNSS sample) over it
+    row = {"case": "ramp north 0.3 m/s"}
+    runs = [{"S_pos": 4.0, "delay": 20, "delay_s": 20.0, "vehicle": json.dumps({"gnss_hz": 1.0})},
+            {"S_pos": 0.3, "delay": None, "delay_s": None, "vehicle": json.dumps({"gnss_hz": 10.0})}]
+    growing_bounds(row, runs, 10.0, 1000.0)
+    assert row["information_bound_s_max"] == slow and row["delay_over_bound"] == pytest.approx(21.0 / slow)
+
+
+def test_a_run_records_what_the_bounds_need(harness):
+    """One run of a gyro attack on a drawn vehicle carries its velocity and heading innovation
+    variances and the rate the heading was tested at (the IMU's)."""
+    import tempfile
+    from tools.evaluation.cases import cases, vehicle
+    from tools.evaluation.runs import one
+    family, name, attacks, duration = next(c for c in cases(["imu"]) if c[1].startswith("gyro"))
+    with tempfile.TemporaryDirectory() as work:
+        row, = one((family, name, attacks, duration, 3, ("cusum",), work, (), True))
+    assert row["S_vel"] > 0 and row["S_pos"] > row["S_vel"] > 0 and row["S_mag"] > 0
+    assert row["mag_hz"] == pytest.approx(json.loads(row["vehicle"])["imu_hz"], rel=0.1)

@@ -29,7 +29,9 @@ class Collector(Sink):
         self.alarms: list[Alarm] = []
         self.estimates: list[tuple[int, float, float]] = []
         self.origin = None
-        self.S_pos: list[float] = []
+        # each fused test's innovation variance (per channel), for the information bounds of summary.py
+        self.S: dict[str, list[float]] = {"gnss_pos": [], "gnss_vel": [], "mag": []}
+        self.tested_us: dict[str, list[int]] = {"mag": []}
 
     def on_events(self, events) -> None:
         for e in events:
@@ -38,8 +40,18 @@ class Collector(Sink):
             elif isinstance(e, Estimate):
                 self.origin = e.origin
                 self.estimates.append((e.t_us, e.east_m, e.north_m))
-            elif isinstance(e, Tested) and e.innovation.sensor == "gnss_pos" and e.innovation.fused:
-                self.S_pos.append(float(np.mean(np.diagonal(e.innovation.S))))
+            elif isinstance(e, Tested) and e.innovation.fused and e.innovation.sensor in self.S:
+                self.S[e.innovation.sensor].append(float(np.mean(np.diagonal(e.innovation.S))))
+                if e.innovation.sensor in self.tested_us:
+                    self.tested_us[e.innovation.sensor].append(e.innovation.t_us)
+
+    def S_median(self, sensor: str) -> float | None:
+        return statistics.median(self.S[sensor]) if self.S[sensor] else None
+
+    def rate_hz(self, sensor: str) -> float | None:
+        """How often the sensor was tested: its rate in the test (the magnetometer comes with the IMU)."""
+        t = self.tested_us[sensor]
+        return (len(t) - 1) / ((t[-1] - t[0]) * 1e-6) if len(t) > 2 and t[-1] > t[0] else None
 
 
 def one(job) -> list[dict]:
@@ -89,7 +101,8 @@ def one(job) -> list[dict]:
                "first_sensor": "|".join((after[0].sensor, *after[0].ambiguous_with)) + f" {after[0].channel}"
                if after else None,
                "error_at_alarm_m": error_at(after[0].t_us, before=True) if after else None,
-               "S_pos": statistics.median(col.S_pos) if col.S_pos else None,
+               "S_pos": col.S_median("gnss_pos"), "S_vel": col.S_median("gnss_vel"),
+               "S_mag": col.S_median("mag"), "mag_hz": col.rate_hz("mag"),
                "peak_ratio": max(monitor.detector.peak.values(), default=None)}
         if after and family in ("step", "ramp", "spoof", "freeze", "early"):
             t_a = after[0].t_us

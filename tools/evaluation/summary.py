@@ -63,6 +63,74 @@ def lorden(size: float, run: dict, arl0_h: float) -> tuple[float, float]:
     return math.log(arl0_h * 3600 * hz) / info, hz
 
 
+# What an attack adds to the innovations' mean, t seconds after its onset, per stream tested (a bias
+# integrates: an accelerometer bias b is a velocity b t and a position b t²/2; a gyro bias ω a heading
+# ω t). Sizes from the case's name. Steps are Lorden's constant shift (`lorden`).
+SIGNATURES = {
+    "ramp": lambda size: (("gnss_pos", lambda t: size * t),),
+    "accel": lambda size: (("gnss_vel", lambda t: size * t), ("gnss_pos", lambda t: size * t * t / 2)),
+    "gyro": lambda size: (("mag", lambda t: size * t),),
+}
+
+
+def signature(case: str):
+    """The case's signature (stream, mean(t)) pairs, or None for a case without one here."""
+    words = case.split()
+    if words[0] == "ramp" and words[1] in ("north", "east"):
+        return SIGNATURES["ramp"](float(words[2]))
+    if words[0] in ("accel", "gyro") and words[2] == "bias":
+        return SIGNATURES[words[0]](float(words[3]))
+    return None
+
+
+def information_bound(streams, S: dict, hz: dict, arl0_h: float, horizon_s: float = 120.0) -> float | None:
+    """The time after an attack's onset (s) before which no test whose mean time between false alarms
+    is arl0_h can expect to have seen enough of it: the least T at which the information its samples
+    carry, the sum over each stream's samples t_i <= T of mean(t_i)^2 / (2 S), reaches ln(ARL0), ARL0
+    counted in the streams' samples. Lorden's ln(ARL0)/I for a signal that grows, with the known
+    onset and shape of an oracle and the innovations white, as the filter's model has them: a lower
+    bound, which a filter that follows part of a slow attack does not reach, and which flatters the
+    slowest ramps (a receiver's error wanders: a ramp slower than the wander is one more wander). None
+    if a stream's S or rate is unknown, or the horizon passes first."""
+    if any(S.get(k) is None or not hz.get(k) for k, _ in streams):
+        return None
+    need = math.log(arl0_h * 3600 * sum(hz[k] for k in {k for k, _ in streams}))
+    times = sorted((i / hz[k], k, mean) for k, mean in streams for i in range(1, int(horizon_s * hz[k]) + 1))
+    total = 0.0
+    for t, k, mean in times:
+        total += mean(t) ** 2 / (2 * S[k])
+        if total >= need:
+            return t
+    return None
+
+
+def growing_bounds(s: dict, rs: list[dict], gnss_hz: float, arl0_h: float) -> None:
+    """`information_bound` per run (its own S, GNSS and magnetometer rates) into the summary row s:
+    its median and largest (s), and the median of guard's time over it, both counted from the onset
+    (guard's alarm one GNSS sample after its delay, as for the steps)."""
+    import json
+    streams = signature(s["case"])
+    if streams is None:
+        return
+    pairs = []
+    for r in rs:
+        car = r.get("vehicle")
+        car = car if isinstance(car, dict) else json.loads(car) if car else {}
+        g = float(car.get("gnss_hz", gnss_hz))
+        b = information_bound(streams, {"gnss_pos": r.get("S_pos"), "gnss_vel": r.get("S_vel"),
+                                        "mag": r.get("S_mag")},
+                              {"gnss_pos": g, "gnss_vel": g, "mag": r.get("mag_hz")}, arl0_h)
+        if b is not None:
+            pairs.append((b, None if r["delay"] is None else
+                          (r["delay_s"] if r.get("delay_s") is not None else r["delay"] / g) + 1 / g))
+    if pairs:
+        s["information_bound_s"] = statistics.median(b for b, _ in pairs)
+        s["information_bound_s_max"] = max(b for b, _ in pairs)
+        ratios = [d / b for b, d in pairs if d is not None]
+        if ratios:
+            s["delay_over_bound"] = statistics.median(ratios)
+
+
 def summarise(rows: list[dict], gnss_hz: float, arl0_samples: float) -> list[dict]:
     out = []
     keys = sorted({(r["family"], r["case"], r["detector"]) for r in rows}, key=lambda k: (k[0], k[1], k[2]))
@@ -98,6 +166,8 @@ def summarise(rows: list[dict], gnss_hz: float, arl0_samples: float) -> list[dic
                       if r["delay"] is not None]
             if ratios:
                 s["delay_over_lorden"] = statistics.median(ratios)
+        elif family in ("ramp", "imu"):
+            growing_bounds(s, rs, gnss_hz, arl0_samples / (3600 * gnss_hz))
         elif family == "step":
             size = float(case.split()[2])
             S = statistics.median(r["S_pos"] for r in rs if r["S_pos"])
