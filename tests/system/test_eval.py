@@ -204,3 +204,18 @@ def test_a_run_records_what_the_bounds_need(harness):
         row, = one((family, name, attacks, duration, 3, ("cusum",), work, (), True))
     assert row["S_vel"] > 0 and row["S_pos"] > row["S_vel"] > 0 and row["S_mag"] > 0
     assert row["mag_hz"] == pytest.approx(json.loads(row["vehicle"])["imu_hz"], rel=0.1)
+
+
+def test_an_imu_alarm_before_the_first_attacked_fix_is_the_attack_s(harness):
+    """An accelerometer attack caught on its first IMU sample, before the next GNSS fix (whose index
+    the alarm then carries), is a detection at 0 samples, not a false alarm and a miss. (Without the
+    shock bound the accelerometer's test fires on that first sample.)"""
+    import tempfile
+    from guard_sim.scenario import Attack
+    from tools.evaluation.cases import START_S
+    from tools.evaluation.runs import one
+    with tempfile.TemporaryDirectory() as work:
+        row, = one(("imu", "accel x bias 10 m/s2", (Attack("bias", "accel", "x", 10.0, START_S),), 40.0, 0,
+                    ("cusum",), work, ("detector.shock_sigma=0",)))
+    assert row["false_alarms"] == 0 and row["detected"] and row["delay"] == 0
+    assert row["first_sensor"] == "accel x"

@@ -64,6 +64,9 @@ def one(job) -> list[dict]:
     truth = run(sc, sim_seed(family, attacks, seed), tlog=str(tlog))
     real = [a for a in truth["attacks"] if a["kind"] != "dropout"]
     k0 = min((a["start_gnss_index"] for a in real), default=None)
+    # an alarm is the attack's from the onset on, though an IMU alarm may come before the first attacked
+    # fix (its gnss_index that of the fix before): its delay is then 0 samples, not a false alarm
+    t0 = min((a["start_time_usec"] for a in real), default=None)
     sensors = {a["sensor"] for a in real}
     if any(a["kind"] in ("spoof", "freeze") for a in real):
         sensors |= {"gnss_pos", "gnss_vel"}          # they act on the whole fix
@@ -88,13 +91,13 @@ def one(job) -> list[dict]:
             j = min(int(np.searchsorted(t_true, est[i, 0])), len(t_true) - 1)
             return float(np.hypot(*(est[i, 1:] - true_en[j])))
 
-        false = [a for a in col.alarms if k0 is None or a.gnss_index < k0]
-        after = [a for a in col.alarms if k0 is not None and a.gnss_index >= k0]
+        false = [a for a in col.alarms if t0 is None or a.t_us < t0]
+        after = [a for a in col.alarms if t0 is not None and a.t_us >= t0]
         right = [a for a in after if a.sensor in sensors or sensors & set(a.ambiguous_with)]
         row = {"family": family, "case": name, "seed": seed, "detector": det, "hours": duration / 3600,
                "false_alarms": len(false), "detected": bool(after),
-               "delay": after[0].gnss_index - k0 if after else None,
-               "delay_s": (after[0].gnss_index - k0) / sc.rates.gnss_hz if after else None,
+               "delay": max(0, after[0].gnss_index - k0) if after else None,
+               "delay_s": max(0, after[0].gnss_index - k0) / sc.rates.gnss_hz if after else None,
                "vehicle": json.dumps(car) if car else None,
                "isolated": bool(right) and right[0] is after[0] and not right[0].ambiguous_with,
                "ambiguous": bool(right) and right[0] is after[0] and bool(right[0].ambiguous_with),
