@@ -111,6 +111,9 @@ def _check(cfg: Config, where: str) -> None:
         "detector.false_alarm_interval_h": (det.false_alarm_interval_h <= 0, "must be > 0"),
         "detector.paper_warmup": (det.paper_warmup < 2, "must be >= 2"),
         "detector.gate_sigma": (det.gate_sigma <= 0, "must be > 0"),
+        "detector.shock_sigma": (0 < det.shock_sigma <= max(det.shift_sigma, default=0.0),
+                                 "must be 0 (no bound) or above the largest of detector.shift_sigma "
+                                 "(at or below it, a large shift never accumulates)"),
         "link.system_id": (link.system_id > 255, "must be 0..255"),
         "link.heartbeat_hz": (link.heartbeat_hz <= 0, "must be > 0"),
         "can.gnss_node_id": (cfg.can.gnss_node_id > 127, "must be 0..127"),

@@ -661,7 +661,8 @@ def test_signing_required(tmp_path):
     ("[link]\nlink_timeout_s = \"five\"\n", "link.link_timeout_s"),
     ("[monitor]\nvehicle = \"boat\"\n", "monitor.vehicle"),
     ("[link]\nrequire_signed = true\n", "link.require_signed"),
-], ids=["unknown-key", "wrong-type", "bad-choice", "signed-without-key"])
+    ("[detector]\nshock_sigma = 2.0\n", "detector.shock_sigma"),
+], ids=["unknown-key", "wrong-type", "bad-choice", "signed-without-key", "shock-bound-below-a-shift"])
 def test_config_error_is_one_line(tmp_path, body, key):
     bad = tmp_path / "bad.toml"
     bad.write_text(body)

@@ -176,6 +176,33 @@ def test_page_large_step_alarms_on_first_sample(sign):
     assert stat_next == pytest.approx(max(0.0, abs(r[201, 1]) - det.ks[0]))
 
 
+@pytest.mark.parametrize("sensor", ["accel", "gyro"])
+def test_page_an_inertial_shock_alone_cannot_alarm_a_bias_still_does(sensor):
+    """An accelerometer or gyro innovation counts for at most shock_sigma: one shock of 40 sigmas
+    (a kerb, a landing) raises no alarm and leaves its statistic at shock_sigma - k; without the
+    bound, or on a GNSS channel, it alarms at once. A persisting shift of any size still accumulates:
+    a 1-sigma one alarms on the same sample as without the bound, a 40-sigma one within 2 samples."""
+    rng = np.random.default_rng(5)
+    noise = rng.standard_normal((400, 1)) * 0.3
+    shock = noise.copy(); shock[200, 0] += 40.0
+    bias_small = noise.copy(); bias_small[200:, 0] += 1.0
+    bias_large = noise.copy(); bias_large[200:, 0] += 40.0
+    bounded, unbounded = DetectorConfig(), DetectorConfig(shock_sigma=0.0)
+    S = np.eye(1)
+
+    def first_alarm(cfg, name, r):
+        res = feed(PageCusum(cfg, n_channels=1), name, r, S)
+        return next((i for i, (_, _, alarms) in enumerate(res) if alarms), None), res
+
+    at, res = first_alarm(bounded, sensor, shock)
+    assert at is None
+    assert res[200][0][0] == pytest.approx(bounded.shock_sigma - max(bounded.shift_sigma) / 2, abs=0.1)
+    assert first_alarm(unbounded, sensor, shock)[0] == 200
+    assert first_alarm(bounded, "gnss_pos", shock)[0] == 200
+    assert first_alarm(bounded, sensor, bias_small)[0] == first_alarm(unbounded, sensor, bias_small)[0] > 200
+    assert 200 < first_alarm(bounded, sensor, bias_large)[0] <= 201
+
+
 def test_page_statistic_restarts_at_zero():
     det = PageCusum(ONE, n_channels=1)
     S = np.eye(1)

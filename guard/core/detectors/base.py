@@ -14,6 +14,7 @@ class DetectorConfig:
     name: str = "cusum"                 # "cusum" | "paper" | "gate" | "chi2"
     false_alarm_interval_h: float = 1000.0   # cusum: target mean time between false alarms, all channels
     shift_sigma: tuple[float, ...] = (1.0, 4.0)   # cusum: design shifts delta (sigmas), one CUSUM each
+    shock_sigma: float = 5.0            # cusum: an IMU innovation counts for at most this many sigmas (0: no bound)
     paper_kappa: float = 3.0            # paper: half-width of the band, in standard deviations of a sum
     paper_warmup: int = 10              # paper: samples that set the band after each (re)start
     gate_sigma: float = 5.0             # gate: an innovation beyond this many sigmas is rejected ...

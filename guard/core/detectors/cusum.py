@@ -43,7 +43,17 @@ class PageCusum(Detector):
     A small shift accumulates in the small-k member, a large step fires the large-k member at once:
     together they cover an attack of unknown size. All members of all channels share the budget.
     The statistic reported for a channel is that of the member closest to its threshold.
+
+    The inertial sensors' normalised innovations count for at most `shock_sigma` (Huber's bounded
+    CUSUM): an accelerometer and a gyro measure real shocks (a landing, the motors' start, a kerb) of
+    many sigmas for a sample or two, which no Gaussian model of their noise covers, and an attack on
+    them matters by persisting (a bias moves the estimate only as it integrates). One sample adds at
+    most shock_sigma - k, under the threshold: a shock needs company to alarm, a bias of any size
+    still accumulates every sample. Bounding can only lower the in-control statistic, so the
+    thresholds (Siegmund's, for N(0, 1) data) keep their false-alarm budget.
     """
+
+    BOUNDED = frozenset({"accel", "gyro"})
 
     name = "cusum"
 
@@ -79,11 +89,12 @@ class PageCusum(Detector):
         if chans is None:
             chans = self.state[sensor] = [_Page(nk) for _ in range(len(r))]
         hs = self._h(sensor, t_us)
+        clip = self.cfg.shock_sigma if sensor in self.BOUNDED and self.cfg.shock_sigma > 0 else math.inf
         stat, thr, alarms = [], [], []
         onset = 0                                       # the longest run of this sample's alarms
         for i, (ri, si) in enumerate(zip(r.tolist(), S.diagonal().tolist())):
             c = chans[i]
-            z = ri / math.sqrt(si)
+            z = min(max(ri / math.sqrt(si), -clip), clip)
             best, best_j, best_g = -1.0, 0, 0.0
             for j, k in enumerate(self.ks):
                 # g+ = max(0, g+ + z - k),  g- = max(0, g- - z - k)
