@@ -185,6 +185,11 @@ def test_the_information_bound_of_growing_attacks():
     S, hz = {"gnss_pos": 4.0, "gnss_vel": 0.07}, {"gnss_pos": 1.0, "gnss_vel": 1.0}
     assert information_bound(accel, S, hz, 1000.0) <= information_bound(accel[:1], S, hz, 1000.0)
     assert information_bound(signature("gyro z bias 0.05 rad/s"), {"mag": 4e-4}, {"mag": None}, 1000.0) is None
+    # a coordinated spoof accelerating away at a: the trace of an accelerometer bias of that size, 10x smaller
+    spoof = signature("spoof north 0.05 m/s2")
+    assert [k for k, _ in spoof] == [k for k, _ in accel] and spoof[0][1](2.0) == pytest.approx(0.1)
+    assert information_bound(spoof, S, hz, 1000.0) > information_bound(accel, S, hz, 1000.0)
+    assert signature("freeze") is None and signature("step north 2 m") is None
     # per run of a summary row: guard's time from the onset (its delay plus one GNSS sample) over it
     row = {"case": "ramp north 0.3 m/s"}
     runs = [{"S_pos": 4.0, "delay": 20, "delay_s": 20.0, "vehicle": json.dumps({"gnss_hz": 1.0})},

@@ -65,7 +65,9 @@ def lorden(size: float, run: dict, arl0_h: float) -> tuple[float, float]:
 
 # What an attack adds to the innovations' mean, t seconds after its onset, per stream tested (a bias
 # integrates: an accelerometer bias b is a velocity b t and a position b t²/2; a gyro bias ω a heading
-# ω t). Sizes from the case's name. Steps are Lorden's constant shift (`lorden`).
+# ω t; a coordinated spoof accelerating at a moves the GNSS velocity by a t and its position by a t²/2,
+# as an accelerometer bias of -a would). Sizes from the case's name. Steps are Lorden's constant shift
+# (`lorden`).
 SIGNATURES = {
     "ramp": lambda size: (("gnss_pos", lambda t: size * t),),
     "accel": lambda size: (("gnss_vel", lambda t: size * t), ("gnss_pos", lambda t: size * t * t / 2)),
@@ -80,6 +82,8 @@ def signature(case: str):
         return SIGNATURES["ramp"](float(words[2]))
     if words[0] in ("accel", "gyro") and words[2] == "bias":
         return SIGNATURES[words[0]](float(words[3]))
+    if words[0] == "spoof":             # position and velocity moved together: what no accelerometer felt
+        return SIGNATURES["accel"](float(words[2]))
     return None
 
 
@@ -166,7 +170,7 @@ def summarise(rows: list[dict], gnss_hz: float, arl0_samples: float) -> list[dic
                       if r["delay"] is not None]
             if ratios:
                 s["delay_over_lorden"] = statistics.median(ratios)
-        elif family in ("ramp", "imu"):
+        elif family in ("ramp", "imu", "spoof"):
             growing_bounds(s, rs, gnss_hz, arl0_samples / (3600 * gnss_hz))
         elif family == "step":
             size = float(case.split()[2])
