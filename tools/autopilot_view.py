@@ -1,26 +1,32 @@
 """What the autopilot's own log says where guard raised an alarm: was the inconsistency in the data?
 
     python tools/autopilot_view.py FLIGHT.bin                 # every alarm of `guard replay FLIGHT.bin`
+    python tools/autopilot_view.py FLIGHT.ulg --at 24         # a PX4 log alike
     python tools/autopilot_view.py FLIGHT.bin --at 260.1      # a time of the log (s), alarm or not
     python tools/autopilot_view.py FLIGHT.bin --window 4 --json view.json
 
 An ArduPilot DataFlash log carries its EKF's own GNSS velocity innovations (XKF3 for EKF3, NKF3 for
-EKF2, EKF3 for EKF1: IVN, IVE, in m/s) and the IMU's vibration (VIBE: VibeX..Z in m/s/s, Clip). For
+EKF2, EKF3 for EKF1: IVN, IVE, in m/s) and the IMU's vibration (VIBE: VibeX..Z in m/s/s, Clip); a
+PX4 ULog its EKF2's (estimator_innovations: gps_hvel[0] north, [1] east, m/s) and the first IMU's
+vibration (vehicle_imu_status: accel_vibration_metric in m/s, gyro_vibration_metric in rad/s, both
+PX4's high-frequency levels of the IMU's deltas, and accel_clipping). For
 each time asked (by default each alarm of guard's replay), over the `--window` seconds before it:
 the mean of the autopilot's velocity innovations north and east, and where that mean ranks among
 every such window of the log before it (1 = the largest so far); the vibration's mean and maximum
 per axis and the clipping counted in the window. ArduPilot calls vibration under 30 m/s/s
-acceptable; its EKF gates a velocity innovation only far past these sizes, so a persistent
-innovation of a few tenths of a m/s shows in its log without a warning.
+acceptable (PX4's metrics have no such published line: they are shown, not judged); either EKF
+gates a velocity innovation only far past these sizes, so a persistent innovation of a few tenths of
+a m/s shows in its log without a warning.
 
-ArduPilot's innovation is its estimate less the measurement, guard's the measurement less its
-estimate: the same inconsistency has opposite signs in the two.
+ArduPilot's and PX4's innovation is the estimate less the measurement, guard's the measurement less
+its estimate: the same inconsistency has opposite signs.
 
 An alarm at which the autopilot's own filter saw the same inconsistency (the same axis and sign,
 the largest window of its flight so far) came from the data, not from guard's model of it; whether
 the data was attacked, faulty (vibration) or a manoeuvre the autopilot's attitude did not follow is
 for the operator, and this is what to look at. guard's own replay gives the alarms and their times
-(the log's TimeUS, the same base). ULog and tlogs are not read: DataFlash only.
+(the log's TimeUS, or the ULog's timestamp: the same base). A tlog carries no EKF innovations and is
+not read.
 """
 
 from __future__ import annotations
@@ -37,6 +43,29 @@ sys.path.insert(0, str(ROOT))
 
 INNOVATIONS = ("XKF3", "NKF3", "EKF3")       # EKF3, EKF2, EKF1: IVN, IVE (m/s), core 0
 ACCEPTABLE_VIBE = 30.0                        # m/s/s, ArduPilot's guidance
+
+
+VIBE_FIELDS = {"dataflash": ("vibration (m/s/s, x y z)", ACCEPTABLE_VIBE),
+               "ulog": ("vibration (PX4's accel m/s, gyro rad/s)", None)}
+
+
+def read_ulog(path: str) -> dict:
+    """The same from a PX4 ULog: EKF2's GNSS velocity innovations of its first instance (t s, north,
+    east) and the first IMU's vibration metrics (t s, accel, gyro, clipping summed over the axes)."""
+    from pyulog import ULog
+    log = ULog(path, ["estimator_innovations", "vehicle_imu_status"])
+    innov, vibe = np.empty((0, 3)), np.empty((0, 4))
+    for d in log.data_list:
+        if d.multi_id != 0:
+            continue
+        t = d.data["timestamp"] / 1e6
+        if d.name == "estimator_innovations" and "gps_hvel[0]" in d.data:
+            innov = np.column_stack([t, d.data["gps_hvel[0]"], d.data["gps_hvel[1]"]]).astype(float)
+        elif d.name == "vehicle_imu_status" and "accel_vibration_metric" in d.data:
+            clip = sum(d.data.get(f"accel_clipping[{i}]", np.zeros_like(t)) for i in range(3))
+            vibe = np.column_stack([t, d.data["accel_vibration_metric"], d.data["gyro_vibration_metric"],
+                                    clip]).astype(float)
+    return {"ekf": "EKF2" if len(innov) else None, "innovations": innov, "vibe": vibe, "format": "ulog"}
 
 
 def read(path: str) -> dict[str, np.ndarray]:
@@ -60,7 +89,7 @@ def read(path: str) -> dict[str, np.ndarray]:
     used = {2: "NKF3", 3: "XKF3"}.get(int(log.params.get("AHRS_EKF_TYPE", 0) or 0))   # the EKF it flew on
     kind = used if used and innov[used] else next((k for k in INNOVATIONS if innov[k]), None)
     return {"ekf": kind, "innovations": np.array(innov[kind] if kind else [], dtype=float).reshape(-1, 3),
-            "vibe": np.array(vibe, dtype=float).reshape(-1, 5)}
+            "vibe": np.array(vibe, dtype=float).reshape(-1, 5), "format": "dataflash"}
 
 
 def window_means(innov: np.ndarray, window: float) -> np.ndarray:
@@ -89,12 +118,15 @@ def view(data: dict, at: float, window: float) -> dict:
             out[f"innovation_{axis}_mps"] = round(m, 3)
             out[f"innovation_{axis}_rank"] = int((earlier > abs(m) + 1e-9).sum()) + 1
             out[f"innovation_{axis}_windows"] = int(len(earlier)) + 1      # and this one
+        out["innovation_zero"] = bool(not innov[s, 1:].any())    # an EKF not fusing GNSS logs zeros
     v = (vibe[:, 0] > at - window) & (vibe[:, 0] <= at) if len(vibe) else np.zeros(0, bool)
     if v.any():
-        out["vibe_mean"] = [round(float(x), 1) for x in vibe[v, 1:4].mean(axis=0)]
-        out["vibe_max"] = [round(float(x), 1) for x in vibe[v, 1:4].max(axis=0)]
-        before = vibe[vibe[:, 0] <= at - window, 4]
-        out["clipping"] = int(vibe[v, 4].max() - (before[-1] if len(before) else vibe[v, 4].min()))
+        out["vibe_mean"] = [float(f"{x:.3g}") for x in vibe[v, 1:-1].mean(axis=0)]
+        out["vibe_max"] = [float(f"{x:.3g}") for x in vibe[v, 1:-1].max(axis=0)]
+        before = vibe[vibe[:, 0] <= at - window, -1]
+        out["clipping"] = int(vibe[v, -1].max() - (before[-1] if len(before) else vibe[v, -1].min()))
+    out["vibe_is"], limit = VIBE_FIELDS[data.get("format", "dataflash")]
+    out["vibe_over_limit"] = bool(limit is not None and "vibe_max" in out and max(out["vibe_max"]) > limit)
     return out
 
 
@@ -108,23 +140,23 @@ def say(v: dict, alarm: dict | None) -> str:
         lines.append(f"  the autopilot's {v['ekf']} GNSS velocity innovation over the {v['window_s']:g} s before: "
                      f"north {v['innovation_north_mps']:+.2f} m/s (rank {v['innovation_north_rank']} of "
                      f"{v['innovation_north_windows']} windows up to it), east {v['innovation_east_mps']:+.2f} m/s "
-                     f"(rank {v['innovation_east_rank']} of {v['innovation_east_windows']})")
+                     f"(rank {v['innovation_east_rank']} of {v['innovation_east_windows']})"
+                     + ("; every one 0: the autopilot was not fusing the GNSS there" if v["innovation_zero"] else ""))
     else:
-        lines.append("  no EKF velocity innovations in the log there (XKF3/NKF3/EKF3)")
+        lines.append("  no EKF velocity innovations in the log there (XKF3/NKF3/EKF3, estimator_innovations)")
     if "vibe_mean" in v:
-        worst = max(v["vibe_max"])
-        lines.append(f"  vibration (m/s/s, x y z): mean {' '.join(f'{x:g}' for x in v['vibe_mean'])}, "
+        lines.append(f"  {v['vibe_is']}: mean {' '.join(f'{x:g}' for x in v['vibe_mean'])}, "
                      f"max {' '.join(f'{x:g}' for x in v['vibe_max'])}"
-                     f"{' (over ArduPilot' + chr(39) + 's 30)' if worst > ACCEPTABLE_VIBE else ''}; "
+                     f"{' (over ArduPilot' + chr(39) + 's 30)' if v['vibe_over_limit'] else ''}; "
                      f"clipping {v['clipping']}")
     else:
-        lines.append("  no VIBE in the log there")
+        lines.append("  no vibration record in the log there (VIBE, vehicle_imu_status)")
     return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("log", help="an ArduPilot DataFlash log (.bin)")
+    p.add_argument("log", help="an ArduPilot DataFlash log (.bin) or a PX4 ULog (.ulg)")
     p.add_argument("--at", type=float, action="append", help="a time of the log in s (repeatable); "
                    "default: each alarm of guard's replay")
     p.add_argument("--window", type=float, default=4.0, help="seconds before each time (default 4)")
@@ -137,14 +169,15 @@ def main(argv: list[str] | None = None) -> int:
     except GuardError as e:
         print(f"autopilot_view: {e}", file=sys.stderr)
         return 2
-    if kind != "dataflash":
-        print(f"autopilot_view: {args.log}: {kind or 'not a log guard reads'}, not DataFlash: only an "
-              "ArduPilot DataFlash log carries its EKF's innovations", file=sys.stderr)
+    if kind not in ("dataflash", "ulog"):
+        print(f"autopilot_view: {args.log}: {kind or 'not a log guard reads'}, not DataFlash or ULog: only an "
+              "autopilot's own log carries its EKF's innovations", file=sys.stderr)
         return 2
     try:
-        data = read(args.log)
-    except Exception as e:                         # pymavlink raises what it raises on a cut or corrupt file
-        print(f"autopilot_view: {args.log}: pymavlink could not read it ({type(e).__name__}: {e})", file=sys.stderr)
+        data = read(args.log) if kind == "dataflash" else read_ulog(args.log)
+    except Exception as e:                         # pymavlink and pyulog raise what they raise on a corrupt file
+        reader = "pymavlink" if kind == "dataflash" else "pyulog"
+        print(f"autopilot_view: {args.log}: {reader} could not read it ({type(e).__name__}: {e})", file=sys.stderr)
         return 2
     alarms: list[dict] = []
     if not args.at:

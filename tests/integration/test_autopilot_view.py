@@ -34,6 +34,27 @@ def test_at_the_crash_flight_s_alarm_the_autopilot_saw_the_same(tool, shared, tm
     assert "vibration" in capsys.readouterr().out
 
 
+def test_a_px4_log_s_ekf2_innovations_and_vibration(tool, shared, tmp_path, capsys):
+    """A PX4 ULog: EKF2's GNSS velocity innovations and the IMU's vibration metrics, read alike. This
+    short flight's EKF2 logged its innovations as zeros (it was not fusing the GNSS yet): said so."""
+    log = shared / "data" / "real" / "px4_vtol_cubeorange_short.ulg"
+    if not log.is_file():
+        pytest.skip(f"{log} is not here (the shared data folder sits beside the project)")
+    assert tool.main([str(log), "--at", "24", "--at", "26.5", "--json", str(tmp_path / "view.json")]) == 0
+    views = json.loads((tmp_path / "view.json").read_text())
+    assert [v["ekf"] for v in views] == ["EKF2", "EKF2"]
+    assert views[1]["innovation_north_windows"] > views[0]["innovation_north_windows"] >= 1
+    assert views[1]["innovation_zero"] and 0 < max(views[1]["vibe_max"]) < 0.01     # m/s: a quiet IMU
+    assert not views[1]["vibe_over_limit"] and views[1]["clipping"] == 0
+    out = capsys.readouterr().out
+    assert "not fusing the GNSS" in out and "PX4's accel m/s" in out
+    cut = tmp_path / "cut.ulg"
+    cut.write_bytes(log.read_bytes()[:2000])
+    assert tool.main([str(cut), "--at", "24"]) in (0, 2)          # read as far as it goes, or named
+    err = capsys.readouterr().err
+    assert not err or str(cut) in err
+
+
 def test_what_it_cannot_read_is_named(tool, tmp_path, capsys):
     tlog = tmp_path / "flight.tlog"
     tlog.write_bytes(bytes(range(256)) * 4)
