@@ -209,6 +209,9 @@ def test_a_run_records_what_the_bounds_need(harness):
         row, = one((family, name, attacks, duration, 3, ("cusum",), work, (), True))
     assert row["S_vel"] > 0 and row["S_pos"] > row["S_vel"] > 0 and row["S_mag"] > 0
     assert row["mag_hz"] == pytest.approx(json.loads(row["vehicle"])["imu_hz"], rel=0.1)
+    # the alarm's own time from the onset: within one GNSS period of its delay in GNSS samples
+    gnss_hz = json.loads(row["vehicle"])["gnss_hz"]
+    assert row["delay_s"] - 1e-6 <= row["onset_delay_s"] <= row["delay_s"] + 1 / gnss_hz + 1e-6
 
 
 def test_an_imu_alarm_before_the_first_attacked_fix_is_the_attack_s(harness):

@@ -98,6 +98,8 @@ def one(job) -> list[dict]:
                "false_alarms": len(false), "detected": bool(after),
                "delay": max(0, after[0].gnss_index - k0) if after else None,
                "delay_s": max(0, after[0].gnss_index - k0) / sc.rates.gnss_hz if after else None,
+               # from the onset in time: an IMU alarm's own moment, not the GNSS sample it fell after
+               "onset_delay_s": (after[0].t_us - t0) / 1e6 if after else None,
                "vehicle": json.dumps(car) if car else None,
                "isolated": bool(right) and right[0] is after[0] and not right[0].ambiguous_with,
                "ambiguous": bool(right) and right[0] is after[0] and bool(right[0].ambiguous_with),

@@ -111,7 +111,8 @@ def information_bound(streams, S: dict, hz: dict, arl0_h: float, horizon_s: floa
 def growing_bounds(s: dict, rs: list[dict], gnss_hz: float, arl0_h: float) -> None:
     """`information_bound` per run (its own S, GNSS and magnetometer rates) into the summary row s:
     its median and largest (s), and the median of guard's time over it, both counted from the onset
-    (guard's alarm one GNSS sample after its delay, as for the steps)."""
+    (guard's alarm's own time; in a campaign from before runs kept it, one GNSS sample after its
+    delay, as for the steps)."""
     import json
     streams = signature(s["case"])
     if streams is None:
@@ -125,8 +126,12 @@ def growing_bounds(s: dict, rs: list[dict], gnss_hz: float, arl0_h: float) -> No
                                         "mag": r.get("S_mag")},
                               {"gnss_pos": g, "gnss_vel": g, "mag": r.get("mag_hz")}, arl0_h)
         if b is not None:
-            pairs.append((b, None if r["delay"] is None else
-                          (r["delay_s"] if r.get("delay_s") is not None else r["delay"] / g) + 1 / g))
+            if r["delay"] is None:
+                pairs.append((b, None))
+            elif r.get("onset_delay_s") is not None:
+                pairs.append((b, r["onset_delay_s"]))
+            else:                          # a campaign from before the runs kept it: one GNSS sample more
+                pairs.append((b, (r["delay_s"] if r.get("delay_s") is not None else r["delay"] / g) + 1 / g))
     if pairs:
         s["information_bound_s"] = statistics.median(b for b, _ in pairs)
         s["information_bound_s_max"] = max(b for b, _ in pairs)
@@ -147,6 +152,8 @@ def summarise(rows: list[dict], gnss_hz: float, arl0_samples: float) -> list[dic
              "median_delay_samples": pct(delays, 50), "p95_delay_samples": pct(delays, 95),
              "median_delay_s": pct(seconds(rs, gnss_hz), 50) if delays else None,
              "p95_delay_s": pct(seconds(rs, gnss_hz), 95) if delays else None,
+             "median_onset_delay_s": pct([r["onset_delay_s"] for r in rs if r.get("onset_delay_s") is not None], 50),
+             "p95_onset_delay_s": pct([r["onset_delay_s"] for r in rs if r.get("onset_delay_s") is not None], 95),
              "false_alarms_per_h": sum(r["false_alarms"] for r in rs) / hours,
              "isolation_rate": (sum(r["isolated"] for r in rs) / max(1, sum(r["detected"] for r in rs)))
              if delays else None,
