@@ -85,8 +85,10 @@ class Sensors:
         reading = GnssReading(
             east_m=s.e + self.markov[0] + white[0] + self._offset(t_s, "gnss_pos", "east"),
             north_m=s.n + self.markov[1] + white[1] + self._offset(t_s, "gnss_pos", "north"),
-            vel_e_mps=s.v * math.cos(s.psi) + vel_noise[0] + self._offset(t_s, "gnss_vel", "east"),
-            vel_n_mps=s.v * math.sin(s.psi) + vel_noise[1] + self._offset(t_s, "gnss_vel", "north"),
+            vel_e_mps=s.v * math.cos(s.psi) - s.w * math.sin(s.psi) + vel_noise[0]
+            + self._offset(t_s, "gnss_vel", "east"),
+            vel_n_mps=s.v * math.sin(s.psi) + s.w * math.cos(s.psi) + vel_noise[1]
+            + self._offset(t_s, "gnss_vel", "north"),
         )
         for a in self.attacks:
             if a.active(t_s) and a.kind == "spoof":
@@ -104,7 +106,8 @@ class Sensors:
     def imu(self, t_s: float, s: State) -> ImuReading:
         n = self.noise
         # specific force in FRD: forward accel, centripetal (left turn -> -y), -g on z
-        acc = np.array([s.accel, -s.omega * s.v, -G])
+        # with a slip w (left): forward v' - omega w, left w' + omega v (FRD's y is right)
+        acc = np.array([s.accel - s.omega * s.w, -(s.w_dot + s.omega * s.v), -G])
         gyro = np.array([0.0, 0.0, -s.omega])
         # in the IMU's axes, scaled: y = (1 + scale) R_z(mount)^T x + b + w
         mount = math.radians(n.imu_yaw_mount_deg)

@@ -1,9 +1,15 @@
 """The vehicle: the paper's planar kinematics and a pure-pursuit controller.
 
 True state: east e, north n (metres from the start), ENU yaw psi (0 = east, counter-clockwise),
-forward speed v and yaw rate omega. A ground vehicle does not slip sideways, so the body velocity is
-(v, 0) and, as in the paper's model,
+forward speed v and yaw rate omega. By default a ground vehicle does not slip sideways, so the body
+velocity is (v, 0) and, as in the paper's model,
     e' = v cos(psi),  n' = v sin(psi),  psi' = omega.
+A real wheel does slip: its tyre turns the force it carries into a slip angle. With
+`route.sideslip_rad_per_mps2` = k the body velocity gains a sideways part w = -k (omega v) v (left
+positive: the vehicle slides outward of its turn in proportion to its lateral acceleration omega v;
+a car: about 0.005 to 0.01 rad per m/s^2), its course over ground differs from its heading by
+atan(w / v), and
+    e' = v cos(psi) - w sin(psi),  n' = v sin(psi) + w cos(psi).
 The controller steers on the position it is *fed* (the GNSS fix, attacked or not, dead-reckoned
 between fixes), so a GNSS attack really pulls the vehicle off its path, as in the paper's loop.
 """
@@ -24,6 +30,8 @@ class State:
     v: float = 0.0
     omega: float = 0.0
     accel: float = 0.0      # dv/dt over the last step, m/s^2
+    w: float = 0.0          # sideways body velocity (left positive), m/s: the slip
+    w_dot: float = 0.0      # dw/dt over the last step, m/s^2
 
 
 class Vehicle:
@@ -75,12 +83,17 @@ class Vehicle:
         """Advance the true state by dt seconds (accel and yaw acceleration limited)."""
         s, r = self.s, self.route
         dv = max(-r.max_accel_mps2 * dt, min(r.max_accel_mps2 * dt, speed_cmd - s.v))
-        domega = max(-2.0 * dt, min(2.0 * dt, omega_cmd - s.omega))
+        lim = r.max_yaw_accel_radps2 * dt
+        domega = max(-lim, min(lim, omega_cmd - s.omega))
         s.omega += domega
         v_mid = s.v + dv / 2
+        w_new = -r.sideslip_rad_per_mps2 * s.omega * (s.v + dv) ** 2
+        w_mid = (s.w + w_new) / 2
         psi_mid = s.psi + s.omega * dt / 2
-        s.e += dt * v_mid * math.cos(psi_mid)
-        s.n += dt * v_mid * math.sin(psi_mid)
+        s.e += dt * (v_mid * math.cos(psi_mid) - w_mid * math.sin(psi_mid))
+        s.n += dt * (v_mid * math.sin(psi_mid) + w_mid * math.cos(psi_mid))
         s.psi = math.atan2(math.sin(s.psi + s.omega * dt), math.cos(s.psi + s.omega * dt))
         s.v += dv
         s.accel = dv / dt if dt > 0 else 0.0
+        s.w_dot = (w_new - s.w) / dt if dt > 0 else 0.0
+        s.w = w_new

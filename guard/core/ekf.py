@@ -78,6 +78,8 @@ class FilterConfig:
     gyro_sigma_radps: float = 0.01    # the floor: the gyro's own noise, measured from its samples, when larger
     accel_sigma_mps2: float = 0.15    # likewise (vibration: 0.25 to 0.66 m/s^2 in two real copter flights at 25 Hz)
     lateral_sigma_mps: float = 0.1    # ground vehicles: sideways body velocity (skid), the v_y = 0 pseudo-measurement
+    lateral_slip_rad_per_mps2: float = 0.02   # ... and in a turn a tyre's slip angle, per m/s^2 of lateral
+                                      # acceleration: adds (this * |yaw rate * v| * v)^2 to its R (a car: 0.005 to 0.01)
     q_pos_m: float = 0.1              # position random walk, m/sqrt(s): covers correlated GNSS error
     q_heading_rad: float = 0.005
     q_vel_mps: float = 0.05

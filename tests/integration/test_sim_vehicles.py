@@ -310,3 +310,33 @@ def test_bad_value_is_named(key, value):
                                         ("imu_yaw_mount_deg", 30.0), ("gnss_h_acc_reported", False)])
 def test_limits_are_inclusive_and_signs_allowed(key, value):
     assert getattr(scn.parse({**BASE, "noise": {key: value}}, "t.toml").noise, key) == value
+
+
+# -- the wheels' slip -------------------------------------------------------------------------------
+
+def test_a_slipping_vehicle_s_course_turns_outward_of_its_heading_and_its_imu_feels_it():
+    """route.sideslip_rad_per_mps2 = k: in a steady left turn the body velocity gains w = -k (omega v) v
+    (outward, to the right), the track over ground runs atan(w / v) right of the heading, and the
+    lateral specific force is still omega v (w is steady); 0 is the paper's no-slip model."""
+    from guard_sim.sensors import Sensors
+    from guard_sim.vehicle import Vehicle
+    k, v, omega, dt = 0.01, 8.0, 0.3, 0.01
+    sc = scn.parse({**BASE, "route": {**BASE["route"], "sideslip_rad_per_mps2": k}}, "slip.toml")
+    car = Vehicle(sc.route, 90.0)
+    car.s.v = v
+    for _ in range(300):                                       # 3 s: the yaw rate is reached and held
+        car.step(dt, v, omega)
+    assert car.s.omega == pytest.approx(omega) and car.s.w == pytest.approx(-k * omega * v * v)
+    e0, n0, psi0 = car.s.e, car.s.n, car.s.psi
+    car.step(dt, v, omega)
+    course = math.atan2(car.s.n - n0, car.s.e - e0)
+    assert math.remainder(course - (psi0 + omega * dt / 2), math.tau) == pytest.approx(
+        math.atan2(-k * omega * v * v, v), abs=1e-3)
+    quiet = scn.parse({**BASE, "noise": {**NOISELESS, "gnss_vel_white_mps": 0.0}}, "quiet.toml")
+    imu = Sensors(quiet, seed=1).imu(0.0, car.s)
+    assert -imu.acc_frd[1] == pytest.approx(omega * v, rel=1e-6)           # FRD y is right: left is -y
+    gnss = Sensors(quiet, seed=1).gnss(0.0, car.s)
+    gnss_course = math.atan2(gnss.vel_n_mps, gnss.vel_e_mps)           # at the step's end, the track's at its middle
+    assert math.remainder(gnss_course - car.s.psi, math.tau) == pytest.approx(math.atan2(car.s.w, v), abs=1e-9)
+    with pytest.raises(ScenarioError, match="sideslip_rad_per_mps2"):
+        scn.parse({**BASE, "route": {**BASE["route"], "sideslip_rad_per_mps2": -0.01}}, "slip.toml")

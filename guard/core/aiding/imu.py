@@ -22,7 +22,7 @@ import math
 import numpy as np
 
 from guard.core.aiding import Aid
-from guard.core.ekf import AX, AY, BAX, BAY, BM, BW, N_STATES, TH, VY, W, FilterConfig
+from guard.core.ekf import AX, AY, BAX, BAY, BM, BW, N_STATES, TH, VX, VY, W, FilterConfig
 from guard.core.history import ImuFusion
 from guard.model.samples import ImuSample
 from guard.model.sensors import Sensor
@@ -191,8 +191,9 @@ class ImuAiding:
             lag = self.f.heading_lag_s
             sig.insert(0, math.sqrt(s_theta ** 2 + (rate * lag) ** 2 + (tilt * lag) ** 2))
         if ground:
-            z.append(0.0)                          # the sideways velocity of a wheeled vehicle
-            sig.append(self.f.lateral_sigma_mps)
+            z.append(0.0)                          # the sideways velocity of a wheeled vehicle: none, but
+            v = abs(float(x[VX]))                  # for the slip its tyres need to turn it
+            sig.append(math.hypot(self.f.lateral_sigma_mps, self.f.lateral_slip_rad_per_mps2 * abs(rate) * v * v))
         R = np.diag(np.square(sig))
         angle = (0,) if theta is not None else ()
         return Aid(np.array(z), H @ x, H, R), blocks, angle
