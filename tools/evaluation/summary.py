@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import json
 import math
 import statistics
 from pathlib import Path
@@ -52,13 +53,17 @@ def seconds(rs: list[dict], gnss_hz: float) -> list[float]:
             for r in rs if r["delay"] is not None]
 
 
+def vehicle_of(run: dict) -> dict:
+    """The run's drawn vehicle (--vehicles), as runs.csv keeps it (JSON) or as a dict; {} without one."""
+    car = run.get("vehicle")
+    return car if isinstance(car, dict) else json.loads(car) if car else {}
+
+
 def lorden(size: float, run: dict, arl0_h: float) -> tuple[float, float]:
     """Lorden's asymptotic lower bound ln(ARL0)/I on the mean delay, in GNSS samples, for a step of
     `size` metres on one run (its own innovation variance S and GNSS rate), and that rate. No test
     whose mean time between false alarms is ARL0 can, on average, be faster."""
-    import json
-    car = run["vehicle"] if isinstance(run["vehicle"], dict) else json.loads(run["vehicle"])
-    hz = float(car["gnss_hz"])
+    hz = float(vehicle_of(run)["gnss_hz"])
     info = size * size / (2 * run["S_pos"])                  # I = nu^2 / (2 S) per GNSS sample
     return math.log(arl0_h * 3600 * hz) / info, hz
 
@@ -113,15 +118,12 @@ def growing_bounds(s: dict, rs: list[dict], gnss_hz: float, arl0_h: float) -> No
     its median and largest (s), and the median of guard's time over it, both counted from the onset
     (guard's alarm's own time; in a campaign from before runs kept it, one GNSS sample after its
     delay, as for the steps)."""
-    import json
     streams = signature(s["case"])
     if streams is None:
         return
     pairs = []
     for r in rs:
-        car = r.get("vehicle")
-        car = car if isinstance(car, dict) else json.loads(car) if car else {}
-        g = float(car.get("gnss_hz", gnss_hz))
+        g = float(vehicle_of(r).get("gnss_hz", gnss_hz))
         b = information_bound(streams, {"gnss_pos": r.get("S_pos"), "gnss_vel": r.get("S_vel"),
                                         "mag": r.get("S_mag")},
                               {"gnss_pos": g, "gnss_vel": g, "mag": r.get("mag_hz")}, arl0_h)
