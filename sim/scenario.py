@@ -54,6 +54,7 @@ class Route:
     max_accel_mps2: float = 1.0
     max_yaw_rate_radps: float = 0.6
     max_yaw_accel_radps2: float = 2.0    # how fast the yaw rate may change (times the speed: the lateral jerk)
+    max_yaw_jerk_radps3: float = 0.0     # how fast the yaw acceleration may change; 0: it steps (vehicle.py)
     lookahead_m: float = 6.0
     sideslip_rad_per_mps2: float = 0.0   # a wheel's slip: the course turns outward of the heading by this
                                          # much per m/s^2 of lateral acceleration (a car: 0.005 to 0.01)
@@ -243,6 +244,8 @@ def parse(data: dict, where: str) -> Scenario:
     for key in ("lookahead_m", "max_accel_mps2", "max_yaw_rate_radps", "max_yaw_accel_radps2"):
         if getattr(route, key) <= 0:
             raise ScenarioError(f"{where}: route.{key}: must be > 0")
+    if route.max_yaw_jerk_radps3 < 0:
+        raise ScenarioError(f"{where}: route.max_yaw_jerk_radps3: must be >= 0 (0: the yaw acceleration steps)")
     if not 0 <= route.sideslip_rad_per_mps2 <= 0.05:
         raise ScenarioError(f"{where}: route.sideslip_rad_per_mps2: must be within 0..0.05 (a car: 0.005 to 0.01)")
     if route.speed_mps < 0 or any(len(p) == 3 and p[2] < 0 for p in route.waypoints_m):

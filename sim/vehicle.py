@@ -10,6 +10,13 @@ positive: the vehicle slides outward of its turn in proportion to its lateral ac
 a car: about 0.005 to 0.01 rad per m/s^2), its course over ground differs from its heading by
 atan(w / v), and
     e' = v cos(psi) - w sin(psi),  n' = v sin(psi) + w cos(psi).
+How fast the yaw rate follows the controller: by default the yaw acceleration steps, up to
+`route.max_yaw_accel_radps2`, the moment the command changes. No tyre does that, and with a slip it
+would step the sideways acceleration too (w' carries the yaw acceleration times v^2). With
+`route.max_yaw_jerk_radps3` = J > 0 the yaw acceleration itself moves at most J per second, towards
+the fastest approach to the commanded rate that a yaw jerk of J can still stop without overshoot
+(sign(e) sqrt(2 J |e|), e the rate still to go): the steering of a car, whose yaw rate follows the
+wheel through the tyres' lag, and whose lateral jerk (J v) stays bounded.
 The controller steers on the position it is *fed* (the GNSS fix, attacked or not, dead-reckoned
 between fixes), so a GNSS attack really pulls the vehicle off its path, as in the paper's loop.
 """
@@ -32,6 +39,7 @@ class State:
     accel: float = 0.0      # dv/dt over the last step, m/s^2
     w: float = 0.0          # sideways body velocity (left positive), m/s: the slip
     w_dot: float = 0.0      # dw/dt over the last step, m/s^2
+    yaw_accel: float = 0.0  # domega/dt over the last step, rad/s^2
 
 
 class Vehicle:
@@ -79,12 +87,24 @@ class Vehicle:
         lim = r.max_yaw_rate_radps
         return speed, max(-lim, min(lim, omega))
 
+    def _yaw_step(self, dt: float, e: float) -> float:
+        """The change of the yaw rate over the next dt, with e the yaw rate still to go."""
+        r = self.route
+        if r.max_yaw_jerk_radps3 <= 0:          # the yaw acceleration steps: reach the command if allowed
+            lim = r.max_yaw_accel_radps2 * dt
+            return max(-lim, min(lim, e))
+        if dt <= 0:
+            return 0.0
+        j, a = r.max_yaw_jerk_radps3, self.s.yaw_accel
+        want = math.copysign(min(math.sqrt(2.0 * j * abs(e)), r.max_yaw_accel_radps2, abs(e) / dt), e)
+        return dt * max(a - j * dt, min(a + j * dt, want))
+
     def step(self, dt: float, speed_cmd: float, omega_cmd: float) -> None:
         """Advance the true state by dt seconds (accel and yaw acceleration limited)."""
         s, r = self.s, self.route
         dv = max(-r.max_accel_mps2 * dt, min(r.max_accel_mps2 * dt, speed_cmd - s.v))
-        lim = r.max_yaw_accel_radps2 * dt
-        domega = max(-lim, min(lim, omega_cmd - s.omega))
+        domega = self._yaw_step(dt, omega_cmd - s.omega)
+        s.yaw_accel = domega / dt if dt > 0 else 0.0
         s.omega += domega
         v_mid = s.v + dv / 2
         w_new = -r.sideslip_rad_per_mps2 * s.omega * (s.v + dv) ** 2

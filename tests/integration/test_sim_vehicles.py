@@ -340,3 +340,36 @@ def test_a_slipping_vehicle_s_course_turns_outward_of_its_heading_and_its_imu_fe
     assert math.remainder(gnss_course - car.s.psi, math.tau) == pytest.approx(math.atan2(car.s.w, v), abs=1e-9)
     with pytest.raises(ScenarioError, match="sideslip_rad_per_mps2"):
         scn.parse({**BASE, "route": {**BASE["route"], "sideslip_rad_per_mps2": -0.01}}, "slip.toml")
+
+
+def test_a_car_s_steering_moves_its_yaw_acceleration_smoothly():
+    """route.max_yaw_jerk_radps3 = J: the yaw acceleration moves at most J dt a step, the yaw rate still
+    reaches the command (overshooting it by under 0.5 %), and with a slip the
+    sideways specific force, which carries the yaw acceleration times v^2, no longer steps; 0 keeps
+    the stepwise model (the yaw rate takes the command at once, within max_yaw_accel_radps2)."""
+    from guard_sim.vehicle import Vehicle
+    k, v, dt, target = 0.015, 8.0, 0.0025, 0.5
+    for jerk in (1.0, 4.0):
+        sc = scn.parse({**BASE, "route": {**BASE["route"], "sideslip_rad_per_mps2": k,
+                                          "max_yaw_jerk_radps3": jerk}}, "car.toml")
+        car = Vehicle(sc.route, 90.0)
+        car.s.v = v
+        accel, lateral, rates = [], [], []
+        for _ in range(int(3.0 / dt)):
+            car.step(dt, v, target)
+            accel.append(car.s.yaw_accel)
+            lateral.append(car.s.w_dot + car.s.omega * car.s.v)
+            rates.append(car.s.omega)
+        assert max(abs(b - a) for a, b in zip(accel, accel[1:])) <= jerk * dt * (1 + 1e-9)
+        assert max(rates) <= 1.005 * target and rates[-1] == pytest.approx(target, abs=1e-3)
+        # the sideways force's change in a step: k v^2 times the yaw acceleration's, and v times the yaw rate's
+        assert max(abs(b - a) for a, b in zip(lateral, lateral[1:])) < 1.1 * (
+            k * v * v * jerk * dt + v * sc.route.max_yaw_accel_radps2 * dt)
+    stepwise = Vehicle(scn.parse({**BASE, "route": {**BASE["route"], "sideslip_rad_per_mps2": k}}, "s.toml").route, 90.0)
+    stepwise.s.v = v
+    stepwise.step(dt, v, target)
+    a = stepwise.route.max_yaw_accel_radps2
+    assert stepwise.s.yaw_accel == pytest.approx(a), "it steps at once"
+    assert abs(stepwise.s.w_dot) > 10 * (k * v * v * 4.0 * dt + v * a * dt), "and so does the sideways force"
+    with pytest.raises(ScenarioError, match="max_yaw_jerk_radps3"):
+        scn.parse({**BASE, "route": {**BASE["route"], "max_yaw_jerk_radps3": -1.0}}, "car.toml")
