@@ -31,12 +31,15 @@ def verdict(truth: dict, received: list[tuple[int, str]]) -> str:
     if not attacks:
         return "verdict: no attack, " + (f"but {len(alarms)} FALSE ALARM(S)" if alarms else "no alarm: correct")
     k0 = min(a["start_gnss_index"] for a in attacks)
+    # an alarm's k is the last fix before it: an attack on the IMU or the magnetometer that starts between
+    # two fixes may be caught before the next one, at k0 - 1 (an alarm names no time to tell more)
+    first = min(a["start_gnss_index"] - (not a["sensor"].startswith("gnss")) for a in attacks)
     what = ", ".join(f"{a['kind']} on {a['sensor']} {a['channel']}" for a in attacks)
-    false = [k for k in alarms if k < k0]
-    caught = [k for k in alarms if k >= k0]
+    false = [k for k in alarms if k < first]
+    caught = [k for k in alarms if k >= first]
     if not caught:
         return f"verdict: {what} at GNSS sample {k0} MISSED" + (f", {len(false)} false alarm(s)" if false else "")
-    return (f"verdict: {what} at GNSS sample {k0} caught at sample {caught[0]} ({caught[0] - k0} samples late), "
+    return (f"verdict: {what} at GNSS sample {k0} caught at sample {caught[0]} ({max(0, caught[0] - k0)} samples late), "
             + (f"{len(false)} FALSE ALARM(S)" if false else "no false alarm"))
 
 
