@@ -131,6 +131,8 @@ def _check(cfg: Config, where: str) -> None:
         "filter.q_pos_m": (flt.q_pos_m <= 0, "must be > 0 (at 0 the estimate cannot follow the GNSS's slow error)"),
         "filter.gnss_pos_acc_fraction": (not 0 < flt.gnss_pos_acc_fraction <= 1, "must be in (0, 1]"),
         "filter.q_accel_no_imu_mps2": (flt.q_accel_no_imu_mps2 <= 0, "must be > 0"),
+        "filter.slip_rad_per_mps2": (not 0 <= flt.slip_rad_per_mps2 <= 0.05,
+                                     "must be within 0..0.05 (a car on tarmac: 0.005 to 0.01)"),
         "log.rotate_mb": (0 < cfg.log.rotate_mb < 1.0, "must be 0 (never) or >= 1 MB"),
         "link.require_signed": (link.require_signed and not link.signing_key_file,
                                 "needs link.signing_key_file (without a key no signature can be checked)"),

@@ -7,17 +7,19 @@ import math
 
 import numpy as np
 
-from guard.core.ekf import BM, N_STATES, TH, VX, VY, X, Y, NavEKF, body_velocity
+from guard.core.ekf import BM, KS, N_STATES, TH, VX, VY, X, Y, NavEKF, body_velocity
 from guard.model.samples import GnssFix
 
 MAX_POS_SIGMA_M = 10_000.0     # an estimate less sure of its position than this has diverged
 MAX_SPEED_MPS = 300.0          # nor does a vehicle guard watches move faster
 
 
-def initial_state(fix: GnssFix, theta_mag: float | None, b0: float) -> np.ndarray:
+def initial_state(fix: GnssFix, theta_mag: float | None, b0: float, k0: float = 0.0) -> np.ndarray:
     """The first state: at the fix's position (the frame's origin), the heading the magnetometer
-    reads less its known offset b0 (else the course, when moving, else 0), the fix's velocity."""
+    reads less its known offset b0 (else the course, when moving, else 0), the fix's velocity, the
+    wheels' known slip k0."""
     x0 = np.zeros(N_STATES)
+    x0[KS] = k0
     ve, vn = fix.vel_e_mps or 0.0, fix.vel_n_mps or 0.0
     x0[BM] = b0                                 # the compass reads theta + b_psi
     if theta_mag is not None:

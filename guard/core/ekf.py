@@ -12,6 +12,10 @@ State (paper, Sec. III-B), indices in brackets:
                         learnt as autopilots learn their compass offsets. A slow random walk
                         (q_mag_offset_rad): a few degrees are learnt in the first minute of moving (the
                         GNSS course and the turns witness the heading), a fast change is not.
+    x[12] k_s           a wheeled vehicle's slip (rad per m/s^2 of lateral acceleration) [beyond the
+                        paper]: in a turn its tyres slide outward, v_y = -k_s theta_dot v_x |v_x|
+                        (a car on tarmac: 0.005 to 0.01). Learnt in the turns, as b_psi is, so that the
+                        sideways constraint holds the vehicle to its own slip and not to none.
 
 Transition with sampling time T (the paper's discrete model):
     x(k+1)  = x + T (v_x cos theta - v_y sin theta)
@@ -27,12 +31,18 @@ that reading would be integrated into a sideways velocity. On a straight line bo
 Measurements (linear in the state but for GNSS velocity), each in its own file of `guard.core.aiding`:
     GNSS position  (x, y);  GNSS velocity (v_e, v_n) = R(theta) (v_x, v_y)   [beyond the paper]
     heading        theta + b_psi;  gyro theta_dot + b;  accelerometer (a_x + b_ax, a_y + b_ay)
-    ground vehicles: v_y = 0, a pseudo-measurement (a wheel does not slide sideways) [beyond the paper]
+    ground vehicles: v_y + k_s theta_dot v_x |v_x| = 0, a pseudo-measurement (a wheel does not slide
+    sideways but by its slip) [beyond the paper]
 
 The sideways constraint (`lateral_sigma_mps`) ties the course over ground to the heading. Without it
 a heading error is hidden by a sideways velocity (a multicopter may fly sideways, so it is off in
 the air), and the GNSS course cannot witness the gyro: a gyro bias and a magnetometer attack then
-look alike. With it, the GNSS course is a third heading witness, the IMU alone keeps the position
+look alike. The constraint is fused with every IMU sample, as if its error were new each time; a
+slip lasts the whole turn, so with k_s held at 0 the filter would hold the sideways velocity near
+zero against the truth, turn its heading towards the course and let its speed drift (on a simulated
+car with k_s = 0.011 at 6 m/s: half the slip held, 1.7 degrees and 0.2 m/s off by a turn's end, and
+the GNSS velocity at 0.996 of its threshold as the turn ends). Learnt, k_s comes within 0.002 of the
+vehicle's by the end of a 10-minute drive. With it, the GNSS course is a third heading witness, the IMU alone keeps the position
 through a GNSS outage (its error grows with the speed error only), and a spoof that moves the GNSS
 track sideways from the heading shows at once.
 
@@ -51,8 +61,8 @@ from dataclasses import dataclass
 import numpy as np
 
 MAX_STEP_S = 0.1       # the longest step of the discrete model
-N_STATES = 12
-X, Y, TH, VX, VY, W, AX, AY, BW, BAX, BAY, BM = range(N_STATES)
+N_STATES = 13
+X, Y, TH, VX, VY, W, AX, AY, BW, BAX, BAY, BM, KS = range(N_STATES)
 
 
 def body_velocity(theta: float, ve: float, vn: float) -> tuple[float, float]:
@@ -91,6 +101,8 @@ class FilterConfig:
     q_accel_bias_air_mps2: float = 0.01   # a vehicle that tilts: its levelled accelerometers carry the attitude's
                                       # error times g (1 degree: 0.17 m/s^2), which moves as it manoeuvres
     q_mag_offset_rad: float = 3e-4    # the magnetometer's heading offset, rad/sqrt(s): 0.4 degree in 10 minutes
+    q_slip_rad_per_mps2: float = 1e-4   # k_s, the wheels' slip (rad per m/s^2 of lateral acceleration),
+                                      # per sqrt(s): 0.0025 in 10 minutes (a change of surface)
     use_gnss_velocity: bool = True
     centripetal: bool = True          # c in the transition; False is the paper's model as written
     p0_pos_m: float = 2.0
@@ -101,11 +113,13 @@ class FilterConfig:
     p0_gyro_bias_radps: float = 0.01
     p0_accel_bias_mps2: float = 0.2
     p0_mag_offset_rad: float = 0.1    # a compass a few degrees off (0.1 rad = 5.7 degrees, 1 sigma)
+    p0_slip_rad_per_mps2: float = 0.01   # k_s: a car's 0.005 to 0.01 within 1 sigma of none
     mag_offset_rad: float = 0.0       # the compass's offset, where known (guard tune): the learnt b_psi starts here
+    slip_rad_per_mps2: float = 0.0    # the wheels' slip, where known (guard tune): the learnt k_s starts here
 
 
 class NavEKF:
-    """x: state (12,), P: covariance (12, 12). predict() then innovation() then fuse()."""
+    """x: state (13,), P: covariance (13, 13). predict() then innovation() then fuse()."""
 
     def __init__(self, cfg: FilterConfig, x0: np.ndarray):
         self.cfg = cfg
@@ -113,15 +127,16 @@ class NavEKF:
         self.P = np.diag(np.square([cfg.p0_pos_m, cfg.p0_pos_m, cfg.p0_heading_rad, cfg.p0_vel_mps, cfg.p0_vel_mps,
                                     cfg.p0_yaw_rate_radps, cfg.p0_accel_mps2, cfg.p0_accel_mps2,
                                     cfg.p0_gyro_bias_radps, cfg.p0_accel_bias_mps2, cfg.p0_accel_bias_mps2,
-                                    cfg.p0_mag_offset_rad]))
+                                    cfg.p0_mag_offset_rad, cfg.p0_slip_rad_per_mps2]))
         self.q = np.square([cfg.q_pos_m, cfg.q_pos_m, cfg.q_heading_rad, cfg.q_vel_mps, cfg.q_vel_mps,
                             cfg.q_yaw_rate_radps, cfg.q_accel_mps2, cfg.q_accel_mps2, cfg.q_gyro_bias_radps,
-                            cfg.q_accel_bias_mps2, cfg.q_accel_bias_mps2, cfg.q_mag_offset_rad])
+                            cfg.q_accel_bias_mps2, cfg.q_accel_bias_mps2, cfg.q_mag_offset_rad,
+                            cfg.q_slip_rad_per_mps2])
         self.c = 1.0 if cfg.centripetal else 0.0
         self._F = np.eye(N_STATES)
         self._I = np.eye(N_STATES)
         self._diag = np.diag_indices(N_STATES)
-        # False: b_psi is held as it is, a "consider" state (its row of K zeroed): while a test is near
+        # False: b_psi and k_s are held as they are, "consider" states (their rows of K zeroed): while a test is near
         # its threshold, what the filter learns of the vehicle could be an attack's doing (Monitor)
         self.learning = True
 
@@ -176,7 +191,7 @@ class NavEKF:
         """GNSS alone (no IMU fast enough to integrate): the heading, yaw rate and IMU biases are held
         where they are, without noise, so that the model is the linear one of a body velocity and
         acceleration in a fixed frame (a random walk in acceleration)."""
-        for i in (TH, W, BW, BAX, BAY, BM):
+        for i in (TH, W, BW, BAX, BAY, BM, KS):
             if i != TH:
                 self.x[i] = 0.0
             self.P[i, :] = self.P[:, i] = 0.0
@@ -203,7 +218,7 @@ class NavEKF:
         # K = P H' S^-1
         K = PHT @ np.linalg.inv(S)
         if not self.learning:
-            K[BM] = 0.0             # the Joseph form below holds for any gain: P stays b_psi's own
+            K[BM] = K[KS] = 0.0     # the Joseph form below holds for any gain: P stays theirs
         self.x += K @ r
         self.x[TH] = math.remainder(self.x[TH], math.tau)
         I_KH = self._I - K @ H

@@ -257,7 +257,7 @@ class Monitor:
                             if dec is None else math.radians(dec))
         self._heading_unset = self._last_mag is None and self.inertial is not False
         theta = None if self._last_mag is None else heading(*self._last_mag, self.declination)
-        x0 = initial_state(fix, theta, self.cfg.filter.mag_offset_rad)
+        x0 = initial_state(fix, theta, self.cfg.filter.mag_offset_rad, self.cfg.filter.slip_rad_per_mps2)
         self.ekf = NavEKF(self.cfg.filter, x0)
         self.ekf.tilting(not self.ground)
         if self.inertial is False:

@@ -90,8 +90,8 @@ class Estimate:
     east_m: float
     north_m: float
     yaw_rad: float          # ENU yaw: 0 = east, counter-clockwise positive
-    x: np.ndarray           # the full state, shape (12,) (guard.core.ekf)
-    P_diag: np.ndarray      # shape (12,)
+    x: np.ndarray           # the full state, shape (13,) (guard.core.ekf)
+    P_diag: np.ndarray      # shape (13,)
     origin: tuple[float, float, float]   # lat_deg, lon_deg, alt_m of the local frame's origin
 
     def lat_lon(self) -> tuple[float, float]:

@@ -9,7 +9,8 @@ when the model fits. From logs without an attack, guard tune fits, in this order
 2. each sensor's noise floor: scaled until its innovations' standard deviation over all the logs is
    1 / MARGIN of the model's (the noise set MARGIN above what the logs show), within BOUNDS of the
    defaults; a few passes, as the filter's own uncertainty is part of each innovation's;
-3. the compass's offset (`filter.mag_offset_rad`): the offset the filter learnt, averaged over the logs.
+3. the compass's offset (`filter.mag_offset_rad`) and, on wheels, their slip (`filter.slip_rad_per_mps2`):
+   what the filter learnt, averaged over the logs.
 Then it replays the logs with the profile and prints each one's margin: the largest statistic over its
 threshold per sensor (1.0 is an alarm). The profile holds only what differs from the base config.
 Logs that hold an attack, or a sensor fault, would teach guard to accept it: give clean ones.
@@ -23,7 +24,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from guard.config import Config
-from guard.core.ekf import BM, FilterConfig
+from guard.core.ekf import BM, KS, FilterConfig
 from guard.errors import GuardError
 from guard.model.events import Estimate, Tested
 from guard.model.sensors import Sensor
@@ -51,6 +52,7 @@ class Innovations(Sink):
         self.sum: dict[Sensor, float] = {}
         self.n: dict[Sensor, int] = {}
         self.mag_offset: float | None = None
+        self.slip: float | None = None
 
     def on_events(self, events) -> None:
         for e in events:
@@ -61,6 +63,7 @@ class Innovations(Sink):
                 self.n[s] = self.n.get(s, 0) + len(i.r)
             elif isinstance(e, Estimate):
                 self.mag_offset = float(e.x[BM])
+                self.slip = float(e.x[KS])
 
     def factor(self, sensor: Sensor) -> float | None:
         n = self.n.get(sensor, 0)
@@ -75,7 +78,7 @@ def with_filter(cfg: Config, **changes) -> Config:
 def measure(logs: list[str], cfg: Config) -> tuple[Innovations, list[dict]]:
     """Replay every log with cfg; the innovations of all of them, and each one's report."""
     sink, reports = Innovations(), []
-    offsets = []
+    offsets, slips = [], []
     for log in logs:
         one = Innovations()
         reports.append(replay(log, cfg, listeners=[one]))
@@ -84,7 +87,9 @@ def measure(logs: list[str], cfg: Config) -> tuple[Innovations, list[dict]]:
             sink.n[s] = sink.n.get(s, 0) + one.n[s]
         if one.mag_offset is not None:
             offsets.append(one.mag_offset)
+            slips.append(one.slip)
     sink.mag_offset = sum(offsets) / len(offsets) if offsets else None
+    sink.slip = sum(slips) / len(slips) if slips else None
     return sink, reports
 
 
@@ -121,7 +126,8 @@ def tune(logs: list[str], base: Config, say: Callable[[str], None] = print) -> t
     # 3. the compass's offset
     sink, reports = measure(logs, cfg)
     if sink.mag_offset is not None:
-        cfg = with_filter(cfg, mag_offset_rad=sink.mag_offset)
+        # an air vehicle's slip is never learnt: it stays where it started, and the profile leaves it out
+        cfg = with_filter(cfg, mag_offset_rad=sink.mag_offset, slip_rad_per_mps2=min(max(sink.slip, 0.0), 0.05))
     for sensor in KEYS:
         f = sink.factor(sensor)
         if f is not None:

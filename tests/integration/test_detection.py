@@ -74,9 +74,26 @@ def test_a_car_s_wheels_slipping_at_road_speed_raise_no_alarm_and_do_without_the
     """A car's tyres slip outward in a turn: its course leaves its heading by about 0.01 rad per m/s^2
     of lateral acceleration. On the clean route driven 2.5 times faster (10 to 17.5 m/s, the yaw
     rate's limits scaled so that the lateral jerk stays a car's, 8.5 m/s^3 at most), that is up to
-    0.7 m/s sideways. The wheels' constraint allows the slip the lateral acceleration asks for
-    (`lateral_slip_rad_per_mps2`): 5 clean minutes with no alarm; without it, the same drive alarms."""
+    0.7 m/s sideways. The filter learns the slip (k_s) and its constraint allows for what it has not
+    learnt (`lateral_slip_rad_per_mps2`): 5 clean minutes with no alarm, either alone enough, and k_s
+    within 0.003 of the car's; with neither, the same drive alarms."""
     import dataclasses
+    from guard.core.ekf import KS
+    from guard.model.events import Estimate
+
+    class Slip:
+        k = None
+
+        def on_sample(self, sample):
+            pass
+
+        def on_events(self, events):
+            for e in events:
+                if isinstance(e, Estimate):
+                    self.k = float(e.x[KS])
+
+        def close(self):
+            pass
     sc = scenario.load("clean")
     r = sc.route
     route = dataclasses.replace(
@@ -85,10 +102,15 @@ def test_a_car_s_wheels_slipping_at_road_speed_raise_no_alarm_and_do_without_the
         max_yaw_accel_radps2=0.5, sideslip_rad_per_mps2=0.01)
     tlog = tmp_path / "slip.tlog"
     run(dataclasses.replace(sc, route=route, duration_s=300.0), 5, tlog=str(tlog))
-    report = replay(str(tlog))
+    slip = Slip()
+    report = replay(str(tlog), listeners=[slip])
     assert report["alarms"] == [], report["alarms"][:3]
     assert max(report["peak_ratio"].values()) < 0.9
-    rigid = replay(str(tlog), parse({"filter": {"lateral_slip_rad_per_mps2": 0.0}}))
+    assert slip.k == pytest.approx(0.01, abs=0.003)
+    held = {"p0_slip_rad_per_mps2": 0.0, "q_slip_rad_per_mps2": 0.0}
+    for alone in ({"lateral_slip_rad_per_mps2": 0.0}, held):
+        assert replay(str(tlog), parse({"filter": alone}))["alarms"] == [], alone
+    rigid = replay(str(tlog), parse({"filter": {"lateral_slip_rad_per_mps2": 0.0, **held}}))
     assert len(rigid["alarms"]) >= 2, "the constraint without the slip did not object: the test shows nothing"
 
 

@@ -1,6 +1,6 @@
 """guard tune on a vehicle the defaults do not fit: a receiver 0.2 s late, which in turns reads as a
-GNSS velocity attack. Tuned on two clean drives, the profile is quiet on a third, held out, and the
-held-out drive's attack is still caught at once."""
+GNSS velocity attack, on wheels that slip as a car's. Tuned on two clean drives, the profile is quiet
+on a third, held out, and the held-out drive's attack is still caught at once."""
 
 import dataclasses
 import subprocess
@@ -17,13 +17,15 @@ from guard_sim.run import run
 from guard_sim.scenario import Attack
 
 STEP_AT_S = 80.0
+SLIP = 0.01
 
 
 @pytest.fixture(scope="module")
 def drives(tmp_path_factory):
     work = tmp_path_factory.mktemp("tune")
     base = scn.load("clean")
-    late = dataclasses.replace(base, duration_s=110.0, noise=dataclasses.replace(base.noise, gnss_delay_s=0.2))
+    late = dataclasses.replace(base, duration_s=110.0, noise=dataclasses.replace(base.noise, gnss_delay_s=0.2),
+                               route=dataclasses.replace(base.route, sideslip_rad_per_mps2=SLIP, max_yaw_jerk_radps3=2.0))
     paths = {}
     for seed in (1, 2, 3):
         paths[seed] = str(work / f"clean{seed}.tlog")
@@ -40,6 +42,7 @@ def test_tuned_on_clean_drives_the_held_out_one_is_quiet_and_its_attack_caught(d
     assert held_out["alarms"], "the control: the defaults false-alarm on this vehicle"
     profile, cfg = tune([drives[1], drives[2]], Config(), say=lambda line: None)
     assert profile["filter"]["gnss_delay_s"] == pytest.approx(0.2)
+    assert profile["filter"]["slip_rad_per_mps2"] == pytest.approx(SLIP, abs=0.004)
     assert replay(drives[3], cfg)["alarms"] == []
     alarms = replay(drives["attack"], cfg)["alarms"]
     assert alarms and alarms[0]["sensor"] == "gnss_pos" and 0 <= alarms[0]["gnss_index"] - drives["k0"] <= 1, alarms[:2]

@@ -16,8 +16,8 @@ import scipy.linalg
 from filterpy.kalman import ExtendedKalmanFilter
 
 from guard.core.aiding.gnss import H_POS, gnss_velocity_model
-from guard.core.aiding.imu import H_IMU, H_IMU_NO_MAG
-from guard.core.ekf import AX, AY, BAX, BAY, BM, BW, N_STATES, TH, VX, VY, W, X, Y, FilterConfig, NavEKF
+from guard.core.aiding.imu import H_IMU, H_IMU_NO_MAG, ImuAiding
+from guard.core.ekf import AX, AY, BAX, BAY, BM, BW, KS, N_STATES, TH, VX, VY, W, X, Y, FilterConfig, NavEKF
 
 
 # -- oracles written from the docstring -------------------------------------------------------------
@@ -48,7 +48,8 @@ def numerical_jacobian(f, x: np.ndarray, eps: float = 1e-5) -> np.ndarray:
 def process_noise(cfg: FilterConfig, T: float) -> np.ndarray:
     """Q = diag(q^2) T, q the random-walk rates of the config, in state order."""
     q = [cfg.q_pos_m, cfg.q_pos_m, cfg.q_heading_rad, cfg.q_vel_mps, cfg.q_vel_mps, cfg.q_yaw_rate_radps,
-         cfg.q_accel_mps2, cfg.q_accel_mps2, cfg.q_gyro_bias_radps, cfg.q_accel_bias_mps2, cfg.q_accel_bias_mps2, cfg.q_mag_offset_rad]
+         cfg.q_accel_mps2, cfg.q_accel_mps2, cfg.q_gyro_bias_radps, cfg.q_accel_bias_mps2, cfg.q_accel_bias_mps2, cfg.q_mag_offset_rad,
+         cfg.q_slip_rad_per_mps2]
     return np.diag(np.square(q)) * T
 
 
@@ -59,6 +60,7 @@ def random_state(rng: np.random.Generator) -> np.ndarray:
     x[[VX, VY]] = rng.uniform(-15.0, 15.0, 2)
     x[W] = rng.uniform(-1.0, 1.0)
     x[[BW, BAX, BAY]] *= 0.05
+    x[KS] = rng.uniform(0.0, 0.02)
     return x
 
 
@@ -243,11 +245,12 @@ def test_heading_update_across_pi_matches_filterpy_with_wrapped_residual():
 # -- steady state against the DARE ------------------------------------------------------------------
 T_DARE = 0.1
 V0 = 5.0
-N_PAPER = 11                # the paper's states: all but the compass offset
+N_PAPER = 11                # the paper's states: all but the compass offset and the wheels' slip
 
 
 def PAPER_ONLY(centripetal: bool) -> FilterConfig:
-    return FilterConfig(centripetal=centripetal, p0_mag_offset_rad=0.0, q_mag_offset_rad=0.0)
+    return FilterConfig(centripetal=centripetal, p0_mag_offset_rad=0.0, q_mag_offset_rad=0.0,
+                        p0_slip_rad_per_mps2=0.0, q_slip_rad_per_mps2=0.0)
 
 
 def run_to_steady_state(centripetal: bool, v0: float, T: float = T_DARE, tol: float = 1e-14, max_steps: int = 50_000):
@@ -361,7 +364,9 @@ def test_P_stays_symmetric_positive_definite():
     cfg = FilterConfig()
     truth = np.zeros(N_STATES)
     truth[VX] = 8.0
-    ekf = NavEKF(cfg, truth + rng.normal(0.0, 0.5, N_STATES) * [2, 2, 0.3, 1, 1, 0.1, 1, 1, 0.01, 0.1, 0.1, 0.05])
+    truth[KS] = 0.01
+    ekf = NavEKF(cfg, truth + rng.normal(0.0, 0.5, N_STATES) * [2, 2, 0.3, 1, 1, 0.1, 1, 1, 0.01, 0.1, 0.1, 0.05, 0.005])
+    ground = ImuAiding(cfg)
     for step in range(10_000):
         T = rng.uniform(0.001, 0.3)
         # a truth that turns and accelerates a little, kept bounded
@@ -370,7 +375,7 @@ def test_P_stays_symmetric_positive_definite():
         truth = transition(truth, T, 1.0)
         truth[TH] = wrap(truth[TH])
         ekf.predict(T)
-        which = rng.integers(0, 5)
+        which = rng.integers(0, 6)
         if which == 0:
             H, R = H_POS, R_POS
             z = H @ truth + rng.normal(0.0, cfg.gnss_pos_sigma_m, 2)
@@ -388,6 +393,10 @@ def test_P_stays_symmetric_positive_definite():
             H, R = H_IMU_NO_MAG, R_IMU[1:, 1:]
             z = H @ truth + rng.normal(0.0, 1.0, 3) * np.sqrt(np.diag(R))
             innovate_and_fuse(ekf, z, H @ ekf.x, H, R)
+        elif which == 4:                               # a wheeled vehicle's, with its slip's constraint
+            z = H_IMU @ truth + rng.normal(0.0, 1.0, 4) * np.sqrt(np.diag(R_IMU))
+            aid, _, angle = ground.measurement(ekf.x, z[0], z[1], z[2], z[3], True)
+            innovate_and_fuse(ekf, aid.z, aid.hx, aid.H, aid.R, angle_rows=angle)
         else:
             continue                                   # predict only: P grows
         P = ekf.P
@@ -396,3 +405,39 @@ def test_P_stays_symmetric_positive_definite():
         assert np.all(np.isfinite(ekf.x))
     # and the filter tracked the truth, so the states used in F stayed sensible
     assert abs(ekf.x[X] - truth[X]) < 5.0 and abs(ekf.x[Y] - truth[Y]) < 5.0
+
+
+# -- the wheels' slip -----------------------------------------------------------------------------------
+def test_the_slip_constraint_is_linearised_at_the_state():
+    """Ground vehicles: h(x) = v_y + k_s theta_dot v_x |v_x| (the sideways velocity less the slip the
+    filter has learnt); its row of H is the derivative of h, forwards and in reverse."""
+    rng = np.random.default_rng(21)
+    aiding = ImuAiding(FilterConfig())
+
+    def h(x):
+        return x[VY] + x[KS] * x[W] * x[VX] * abs(x[VX])
+    for _ in range(50):
+        x = random_state(rng)
+        aid, _, _ = aiding.measurement(x, 0.1, x[W], 0.0, 0.0, True)
+        assert aid.z[-1] == 0.0 and aid.hx[-1] == pytest.approx(h(x), abs=1e-12)
+        np.testing.assert_allclose(aid.H[-1], numerical_jacobian(lambda v: np.array([h(v)]), x)[0],
+                                   rtol=0, atol=1e-6)
+        np.testing.assert_array_equal(aid.H[:-1], H_IMU)            # the sensors' rows are linear
+
+
+def test_the_learnt_vehicle_is_held_while_a_test_is_near_its_threshold():
+    """learning False: the compass offset and the wheels' slip are consider states, their gains zeroed;
+    the rest of the state is updated as before."""
+    x0 = np.zeros(N_STATES)
+    x0[VX], x0[W] = 8.0, 0.3
+    aiding = ImuAiding(FilterConfig())
+    moved = {}
+    for learning in (True, False):
+        ekf = NavEKF(FilterConfig(), x0)
+        ekf.learning = learning
+        aid, _, angle = aiding.measurement(ekf.x, 0.05, 0.3, 0.0, 2.4, True)
+        aid.z[-1] = 0.0
+        innovate_and_fuse(ekf, aid.z, aid.hx + np.r_[0.0, 0.0, 0.0, 0.0, 0.3], aid.H, aid.R, angle_rows=angle)
+        moved[learning] = ekf.x - x0
+    assert moved[True][KS] != 0.0 and moved[True][BM] != 0.0
+    assert moved[False][KS] == 0.0 and moved[False][BM] == 0.0 and moved[False][VY] != 0.0

@@ -1,8 +1,9 @@
 """IMU aiding: the magnetometer's heading, the gyro's yaw rate and the accelerometer's horizontal
 specific force, fused as one stacked measurement and tested sensor by sensor.
 
-    z = (theta_mag, omega_z, a_x, a_y[, 0])    h(x) = H x
-    H rows: theta + b_psi;  theta_dot + b_theta_dot;  a_x + b_ax;  a_y + b_ay;  [ground vehicles: v_y = 0]
+    z = (theta_mag, omega_z, a_x, a_y[, 0])    h(x) = H x, but for the constraint's row
+    H rows: theta + b_psi;  theta_dot + b_theta_dot;  a_x + b_ax;  a_y + b_ay;
+            [ground vehicles: v_y + k_s theta_dot v_x |v_x| = 0, linearised at the state]
 A tilted IMU (a flying drone) is first levelled with the autopilot's roll and pitch, and a fast IMU
 averaged down to `imu_fusion_hz` (as PX4's EKF2 does): the mean of the samples since the last fusion
 is fused at the last one's time, which keeps a 250 Hz IMU affordable on a companion computer.
@@ -22,7 +23,7 @@ import math
 import numpy as np
 
 from guard.core.aiding import Aid
-from guard.core.ekf import AX, AY, BAX, BAY, BM, BW, N_STATES, TH, VX, VY, W, FilterConfig
+from guard.core.ekf import AX, AY, BAX, BAY, BM, BW, KS, N_STATES, TH, VX, VY, W, FilterConfig
 from guard.core.history import ImuFusion
 from guard.model.samples import ImuSample
 from guard.model.sensors import Sensor
@@ -36,7 +37,7 @@ H_IMU[1, W] = H_IMU[1, BW] = 1.0
 H_IMU[2, AX] = H_IMU[2, BAX] = 1.0
 H_IMU[3, AY] = H_IMU[3, BAY] = 1.0
 H_IMU_NO_MAG = H_IMU[1:]
-# ground vehicles: the same with the sideways velocity v_y = 0 appended
+# ground vehicles: the same with the sideways constraint appended (its slip columns set per fusion)
 H_LATERAL = np.zeros((1, N_STATES)); H_LATERAL[0, VY] = 1.0
 H_IMU_GROUND, H_IMU_NO_MAG_GROUND = np.vstack([H_IMU, H_LATERAL]), np.vstack([H_IMU_NO_MAG, H_LATERAL])
 # rows of the stacked IMU measurement that belong to each sensor: (sensor, first, last + 1)
@@ -196,7 +197,13 @@ class ImuAiding:
             sig.append(math.hypot(self.f.lateral_sigma_mps, self.f.lateral_slip_rad_per_mps2 * abs(rate) * v * v))
         R = np.diag(np.square(sig))
         angle = (0,) if theta is not None else ()
-        return Aid(np.array(z), H @ x, H, R), blocks, angle
+        hx = H @ x
+        if ground:      # v_y + k_s theta_dot v_x |v_x| = 0: the slip the filter has learnt is no skid
+            vx, w, ks = float(x[VX]), float(x[W]), float(x[KS])
+            H = H.copy()
+            H[-1, KS], H[-1, W], H[-1, VX] = w * vx * abs(vx), ks * vx * abs(vx), 2.0 * ks * w * abs(vx)
+            hx[-1] = x[VY] + ks * w * vx * abs(vx)
+        return Aid(np.array(z), hx, H, R), blocks, angle
 
 
 def fuse_rows(ekf, t_us: int, aid: Aid, r: np.ndarray, S: np.ndarray, PHT: np.ndarray, keep: list[int],
