@@ -4,6 +4,7 @@ told apart, and an estimate re-anchored on the GNSS when the other sensors can n
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -29,6 +30,33 @@ def initial_state(fix: GnssFix, theta_mag: float | None, b0: float, k0: float = 
     x0[TH] = th
     x0[VX], x0[VY] = body_velocity(th, ve, vn)
     return x0
+
+
+@dataclass(frozen=True)
+class Learnt:
+    """What a filter learnt of the vehicle, not of the moment: the compass's offset b_psi and the
+    wheels' slip k_s, with their variances. A filter started again on the same vehicle (a reboot)
+    starts from them."""
+
+    b_psi: float
+    var_b_psi: float
+    k_s: float
+    var_k_s: float
+
+    @classmethod
+    def of(cls, ekf: NavEKF) -> Learnt:
+        x, P = ekf.x, ekf.P
+        return cls(float(x[BM]), float(P[BM, BM]), float(x[KS]), float(P[KS, KS]))
+
+    def restore(self, ekf: NavEKF) -> None:
+        """Their variances into a new filter (whose x0 already holds their values), uncorrelated."""
+        ekf.P[BM, :] = ekf.P[:, BM] = 0.0
+        ekf.P[KS, :] = ekf.P[:, KS] = 0.0
+        ekf.P[BM, BM], ekf.P[KS, KS] = self.var_b_psi, self.var_k_s
+
+    def __str__(self) -> str:
+        return (f"compass offset b_psi {math.degrees(self.b_psi):+.1f} deg "
+                f"(+-{math.degrees(math.sqrt(self.var_b_psi)):.1f}), wheel slip k_s {self.k_s:.4f}")
 
 
 def diverged(ekf: NavEKF) -> str | None:

@@ -30,7 +30,7 @@ import numpy as np
 from guard.core.aiding import Aid
 from guard.core.aiding.gnss import FreezeWatch, GnssAiding
 from guard.core.aiding.imu import Averager, ImuAiding, StreamRate, fuse_rows, heading, level
-from guard.core.anchor import diverged, initial_state
+from guard.core.anchor import Learnt, diverged, initial_state
 from guard.core.detectors import DetectorConfig, make_detector
 from guard.core.ekf import BM, TH, VX, VY, FilterConfig, NavEKF
 from guard.core.geo import WMM_EPOCH, LocalFrame, declination_rad
@@ -93,6 +93,7 @@ class Monitor:
         self.inertial: bool | None = None           # None until the IMU's rate is known; False: too slow
         self.imu_rate = StreamRate()
         self._last_mag: tuple[float, float] | None = None     # levelled (m_x, m_y) of the latest IMU sample
+        self._learnt: Learnt | None = None          # what a restarted filter keeps of the vehicle (_reinitialise)
         self._reset()
 
     def _reset(self) -> None:
@@ -136,7 +137,8 @@ class Monitor:
             if verdict == "drop":                   # not a sample of the stream: not counted in k either
                 return events
             if verdict == "rebase":
-                events += self._reinitialise(sample.t_us, f"time jumped {(sample.t_us - self.t_us) / 1e6:+.1f} s")
+                events += self._reinitialise(sample.t_us, f"time jumped {(sample.t_us - self.t_us) / 1e6:+.1f} s",
+                                             keep_learnt=True)
                 self.timebase.check(kind, sample.t_us, None)
         if gnss:
             self.gnss_index += 1
@@ -157,9 +159,19 @@ class Monitor:
             self._estimate_owed = None
         return events
 
-    def _reinitialise(self, t_us: int, why: str) -> list[Event]:
-        """A new filter, from the next fix. Its alarms are cleared but a GNSS one's, which stands."""
+    def _reinitialise(self, t_us: int, why: str, keep_learnt: bool = False) -> list[Event]:
+        """A new filter, from the next fix. Its alarms are cleared but a GNSS one's, which stands.
+
+        `keep_learnt`: the vehicle is the one it was (a reboot, a link back after an outage), so the
+        new filter starts from what the old one learnt of it, the compass's offset b_psi and the
+        wheels' slip k_s with their variances, not from the config's values: the heading is right
+        from the first fix and nothing is learnt twice. An autopilot calibrates its gyro and
+        accelerometers at boot, so their biases start anew. A diverged filter keeps nothing: what it
+        learnt may be what went wrong."""
         events: list[Event] = [Notice(t_us, "warning", f"{why}: filter re-initialised")]
+        self._learnt = Learnt.of(self.ekf) if keep_learnt and self.ekf is not None else None
+        if self._learnt is not None:
+            events.append(Notice(t_us, "info", f"kept what it learnt of the vehicle: {self._learnt}"))
         cleared, kept = self.health.carried(t_us, self.gnss_index)
         events += cleared
         if kept:
@@ -257,8 +269,12 @@ class Monitor:
                             if dec is None else math.radians(dec))
         self._heading_unset = self._last_mag is None and self.inertial is not False
         theta = None if self._last_mag is None else heading(*self._last_mag, self.declination)
-        x0 = initial_state(fix, theta, self.cfg.filter.mag_offset_rad, self.cfg.filter.slip_rad_per_mps2)
-        self.ekf = NavEKF(self.cfg.filter, x0)
+        kept, f = self._learnt, self.cfg.filter
+        b0, k0 = (kept.b_psi, kept.k_s) if kept else (f.mag_offset_rad, f.slip_rad_per_mps2)
+        x0 = initial_state(fix, theta, b0, k0)
+        self.ekf = NavEKF(f, x0)
+        if kept:
+            kept.restore(self.ekf)
         self.ekf.tilting(not self.ground)
         if self.inertial is False:
             self.ekf.hold_heading()

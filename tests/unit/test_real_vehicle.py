@@ -110,3 +110,37 @@ def test_repeated_and_out_of_order_samples_are_dropped_and_counted():
     mon, events = run(samples)
     assert of(events, Alarm) == []
     assert mon.skipped["imu_resent"] == 1 and mon.skipped["imu_out_of_order"] == 1, mon.skipped
+
+
+@pytest.mark.parametrize("offset_deg", [-4.0, 5.0])
+def test_a_reboot_keeps_what_was_learnt_of_the_vehicle(offset_deg):
+    """A compass 4 or 5 degrees off, learnt in two minutes of driving; the vehicle stops and the
+    autopilot reboots (its clock starts again at 1 s): the new filter starts from the learnt offset,
+    and says so with its value, so that standing still, with no GNSS course to learn it from again,
+    its heading is the true one and not the compass's 4 or 5 degrees off. Nothing alarms."""
+    moving = drive(120.0, yaw=0.4, seed=11, mag_offset_deg=offset_deg)
+    standing = drive(30.0, speed=0.0, yaw=0.4, seed=12, mag_offset_deg=offset_deg)    # from 1 s again
+    mon, events = run(moving + standing, GROUND)
+    assert of(events, Alarm) == []
+    notes = [n for n in of(events, Notice) if "re-initialised" in n.text or "kept what it learnt" in n.text]
+    assert [n.text.split(":")[0] for n in notes] == ["time jumped -120.0 s", "kept what it learnt of the vehicle"]
+    after = of(events[events.index(notes[0]):], Estimate)
+    assert len(after) > 140
+    assert all(abs(math.degrees(e.x[BM]) + offset_deg) < 1.0 for e in after), [math.degrees(e.x[BM]) for e in after]
+    assert all(abs(math.degrees(math.remainder(e.yaw_rad - 0.4, math.tau))) < 1.0 for e in after)
+
+
+def test_a_diverged_filter_keeps_nothing():
+    """Re-initialised because it diverged, the filter starts from the config's offset, not the one it
+    had: what it learnt may be what went wrong."""
+    samples = drive(150.0, yaw=0.4, seed=12, mag_offset_deg=5.0)
+    k = next(i for i, s in enumerate(samples) if s.t_us >= T0_US + 120_000_000)
+    mon, events = run(samples[:k], GROUND)
+    assert abs(math.degrees(mon.ekf.x[BM]) + 5.0) < 1.0
+    mon.ekf.x[3] = np.nan
+    for s in samples[k:]:
+        later = mon.step(s)
+        assert not [n for n in of(later, Notice) if "kept what it learnt" in n.text]
+        if [n for n in of(later, Notice) if "filter initialised" in n.text]:
+            break
+    assert mon.ekf.x[BM] == 0.0 and mon.ekf.P[BM, BM] == FilterConfig().p0_mag_offset_rad ** 2
