@@ -128,6 +128,8 @@ def _check(cfg: Config, where: str) -> None:
         "monitor.readmit_sigma": (cfg.monitor.readmit_sigma < 1.0, "must be >= 1 (below, no sensor is ever re-admitted)"),
         "monitor.max_coast_m": (cfg.monitor.max_coast_m < 1.0, "must be >= 1 m"),
         "monitor.min_imu_hz": (cfg.monitor.min_imu_hz > 100.0, "must be at most 100 Hz"),
+        "monitor.max_wander_factor": (not 1.0 <= cfg.monitor.max_wander_factor <= 10.0,
+                                      "must be within 1..10 (1: each test as the model says)"),
         "filter.q_pos_m": (flt.q_pos_m <= 0, "must be > 0 (at 0 the estimate cannot follow the GNSS's slow error)"),
         "filter.gnss_pos_acc_fraction": (not 0 < flt.gnss_pos_acc_fraction <= 1, "must be in (0, 1]"),
         "filter.q_accel_no_imu_mps2": (flt.q_accel_no_imu_mps2 <= 0, "must be > 0"),

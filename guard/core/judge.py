@@ -18,6 +18,7 @@ from guard.core.ekf import BAY, BW, X, Y, NavEKF
 from guard.core.health import Health
 from guard.core.history import History
 from guard.core.isolation import TURN_Z, Witnesses
+from guard.core.longrun import LongRun
 from guard.model.events import Alarm, Event, Innovation, Notice, Tested
 from guard.model.samples import GnssFix
 from guard.model.sensors import CHANNELS, RECEIVER, Sensor
@@ -27,9 +28,11 @@ CALM_RATIO = 0.5        # every test's statistic under this share of its thresho
 
 
 class Judge:
-    def __init__(self, cfg, detector: Detector, health: Health, witnesses: Witnesses, history: History):
+    def __init__(self, cfg, detector: Detector, health: Health, witnesses: Witnesses, history: History,
+                 longrun: LongRun | None = None):
         self.cfg = cfg                              # MonitorConfig
         self.detector, self.health, self.witnesses, self.history = detector, health, witnesses, history
+        self.longrun = longrun                      # each test's scale for the wander of its innovations
         self.vel_t = -math.inf                      # time of the last GNSS velocity tested
         self.rewind_epochs = 0                      # what the last alarm asks the monitor to undo
         self.ratios: dict[Sensor, float] = {}       # each sensor's latest statistic / threshold, largest channel
@@ -44,7 +47,7 @@ class Judge:
     def test(self, sensor: Sensor, t_us: int, r: np.ndarray, S: np.ndarray, ekf: NavEKF, now_us: int,
              gnss_index: int, record: bool) -> tuple[list[Event], bool]:
         """Run the detector on one sensor's innovation; decide whether to fuse it."""
-        stat, thr, hits = self.detector.test(sensor, t_us, r, S)
+        stat, thr, hits = self.detector.test(sensor, t_us, r, self.longrun.scale(sensor, S) if self.longrun else S)
         self.ratios[sensor] = max((g / h for g, h in zip(stat, thr) if 0.0 < h < math.inf), default=0.0)
         if sensor == Sensor.GNSS_VEL:
             self.witnesses.last_vel = (r, S)    # the axis to name if a magnetometer alarm turns out to be it

@@ -39,6 +39,7 @@ from guard.core.health import Health
 from guard.core.history import History, state_minus
 from guard.core.isolation import HeadingWitness, Witnesses
 from guard.core.judge import Judge
+from guard.core.longrun import LongRun
 from guard.core.timebase import Timebase
 from guard.model.events import Estimate, Event, Notice
 from guard.model.samples import Attitude, GnssFix, ImuSample, VehicleType
@@ -62,6 +63,8 @@ class MonitorConfig:
     max_coast_m: float = 20.0               # m (1 sigma): an excluded GNSS the other sensors cannot hold the
                                             # estimate against for longer is re-anchored on, its alarm standing
     min_imu_hz: float = 8.0                 # Hz: a slower IMU stream (telemetry) is not integrated
+    max_wander_factor: float = 1.0          # the most a test is widened for its innovations' wander
+                                            # (guard.core.longrun); 1, the default: as the model says
 
 
 class Monitor:
@@ -88,6 +91,8 @@ class Monitor:
         self.skipped: Counter[str] = Counter()
         self.timebase = Timebase(self.cfg.max_gap_s, self.skipped)
         self.fit = ModelFit()
+        # each test's scale for its innovations' wander, the vehicle's (kept through a restart); off at 1
+        self.longrun = LongRun(self.cfg.max_wander_factor) if self.cfg.max_wander_factor > 1.0 else None
         self.gnss_index = -1
         self.roll = self.pitch = 0.0
         self.inertial: bool | None = None           # None until the IMU's rate is known; False: too slow
@@ -106,7 +111,7 @@ class Monitor:
         self.health = Health(self._receiver, self.cfg.readmit_s)
         self.witnesses = Witnesses(f, self.cfg.freeze_speed_mps)
         self.history = History(REWIND_S, f.gnss_delay_s, self.cfg.imu_fusion_hz or 1000.0)
-        self.judge = Judge(self.cfg, self.detector, self.health, self.witnesses, self.history)
+        self.judge = Judge(self.cfg, self.detector, self.health, self.witnesses, self.history, self.longrun)
         self.freeze = FreezeWatch(self.cfg.freeze_speed_mps)
         self.averager = Averager(self.cfg.imu_fusion_hz)
         self.detector.reset()
@@ -350,7 +355,15 @@ class Monitor:
 
     def _test(self, sensor: Sensor, t_us: int, r: np.ndarray, S: np.ndarray) -> tuple[list[Event], bool]:
         events, fused = self.judge.test(sensor, t_us, r, S, self.ekf, self.t_us, self.gnss_index, self.record_tests)
-        self.ekf.learning = self.judge.calm         # nothing is learnt while a test is near its threshold
+        calm = self.ekf.learning = self.judge.calm      # nothing is learnt while a test is near its threshold
         if fused:
             self.fit.add(sensor, t_us, r, S)
+        if self.longrun is None:
+            pass
+        elif fused and calm:
+            said = self.longrun.add(sensor, t_us, r, S)
+            if said:
+                events.append(said)
+        else:
+            self.longrun.interrupt(sensor)
         return events, fused
