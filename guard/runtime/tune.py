@@ -8,7 +8,12 @@ when the model fits. From logs without an attack, guard tune fits, in this order
    smallest (a latency shows in turns and speed changes);
 2. each sensor's noise floor: scaled until its innovations' standard deviation over all the logs is
    1 / MARGIN of the model's (the noise set MARGIN above what the logs show), within BOUNDS of the
-   defaults; a few passes, as the filter's own uncertainty is part of each innovation's;
+   defaults; a few passes, as the filter's own uncertainty is part of each innovation's. The
+   standard deviation is the larger of the samples' and their wander's: the spread of their means
+   over blocks of guard.core.longrun.BLOCK samples, scaled to one sample's (a real copter's compass
+   or receiver sits well inside its model sample by sample while its mean over a second wanders,
+   and a CUSUM sums the wander: fitted to the samples alone, the noise came out smaller and the
+   same logs raised more alarms with the profile than without it);
 3. the compass's offset (`filter.mag_offset_rad`) and, on wheels, their slip (`filter.slip_rad_per_mps2`):
    what the filter learnt, averaged over the logs.
 Then it replays the logs with the profile and prints each one's margin: the largest statistic over its
@@ -25,6 +30,7 @@ from pathlib import Path
 
 from guard.config import Config
 from guard.core.ekf import BM, KS, FilterConfig
+from guard.core.longrun import BLOCK, CLIP
 from guard.errors import GuardError
 from guard.model.events import Estimate, Tested
 from guard.model.sensors import Sensor
@@ -35,6 +41,7 @@ DELAYS = (0.0, 0.05, 0.1, 0.15, 0.2, 0.25)
 MARGIN = 1.25           # the fitted noise is this much above what the logs show
 BOUNDS = (0.5, 20.0)    # a floor is scaled within these factors of its default
 PASSES = 3
+MIN_BLOCKS = 10         # block means (times channels) before the wander is taken
 # the configuration keys each sensor's noise scales
 KEYS: dict[Sensor, tuple[str, ...]] = {
     Sensor.GNSS_POS: ("gnss_pos_sigma_m", "gnss_pos_unreported_m"),
@@ -51,6 +58,9 @@ class Innovations(Sink):
     def __init__(self):
         self.sum: dict[Sensor, float] = {}
         self.n: dict[Sensor, int] = {}
+        self.block: dict[Sensor, list] = {}     # sensor -> [sum of z per channel, samples]
+        self.wander: dict[Sensor, float] = {}   # sum over closed blocks and channels of BLOCK zbar^2
+        self.blocks: dict[Sensor, int] = {}
         self.mag_offset: float | None = None
         self.slip: float | None = None
 
@@ -59,15 +69,30 @@ class Innovations(Sink):
             if isinstance(e, Tested) and e.innovation.fused:
                 i = e.innovation
                 s = i.sensor
-                self.sum[s] = self.sum.get(s, 0.0) + sum(float(r * r / S) for r, S in zip(i.r, i.S.diagonal()))
-                self.n[s] = self.n.get(s, 0) + len(i.r)
+                z = [min(max(float(r / math.sqrt(S)), -CLIP), CLIP) for r, S in zip(i.r, i.S.diagonal())]
+                self.sum[s] = self.sum.get(s, 0.0) + sum(zi * zi for zi in z)
+                self.n[s] = self.n.get(s, 0) + len(z)
+                b = self.block.setdefault(s, [[0.0] * len(z), 0])
+                b[0] = [a + zi for a, zi in zip(b[0], z)]
+                b[1] += 1
+                if b[1] == BLOCK:
+                    self.wander[s] = self.wander.get(s, 0.0) + sum(a * a for a in b[0]) / BLOCK
+                    self.blocks[s] = self.blocks.get(s, 0) + len(z)
+                    self.block[s] = [[0.0] * len(z), 0]
             elif isinstance(e, Estimate):
                 self.mag_offset = float(e.x[BM])
                 self.slip = float(e.x[KS])
 
     def factor(self, sensor: Sensor) -> float | None:
+        """The innovations' standard deviation over the model's: the samples', or their wander's
+        where that is larger (over at least MIN_BLOCKS blocks)."""
         n = self.n.get(sensor, 0)
-        return math.sqrt(self.sum[sensor] / n) if n >= 50 else None
+        if n < 50:
+            return None
+        per_sample = self.sum[sensor] / n
+        blocks = self.blocks.get(sensor, 0)
+        wander = self.wander[sensor] / blocks if blocks >= MIN_BLOCKS else 0.0
+        return math.sqrt(max(per_sample, wander))
 
 
 def with_filter(cfg: Config, **changes) -> Config:
@@ -85,6 +110,9 @@ def measure(logs: list[str], cfg: Config) -> tuple[Innovations, list[dict]]:
         for s in one.sum:
             sink.sum[s] = sink.sum.get(s, 0.0) + one.sum[s]
             sink.n[s] = sink.n.get(s, 0) + one.n[s]
+        for s in one.blocks:
+            sink.wander[s] = sink.wander.get(s, 0.0) + one.wander[s]
+            sink.blocks[s] = sink.blocks.get(s, 0) + one.blocks[s]
         if one.mag_offset is not None:
             offsets.append(one.mag_offset)
             slips.append(one.slip)
