@@ -12,6 +12,7 @@ import datetime
 import json
 import random
 import re
+import struct
 import subprocess
 import sys
 from concurrent.futures import ProcessPoolExecutor
@@ -294,3 +295,56 @@ def test_the_cli_never_shows_a_traceback_on_bad_copies(paper, tmp_path):
             assert json.loads(out)["source"] == str(path)
         else:
             assert str(path) in err and len(err.strip().splitlines()) == 1
+
+
+# -- a clock that does not keep time -----------------------------------------------------------------
+def _restamp(src: Path, dst: Path, boot=lambda t: t, gps_ms=lambda ms: ms) -> None:
+    """A copy of a simulator's .bin with its boot time stamps (TimeUS) and GPS times (GMS) remapped."""
+    from guard_sim.dataflash import FORMATS, GPS
+    by_type = {f.type: f for f in (FMT, *FORMATS)}
+    data, p = bytearray(src.read_bytes()), 0
+    while p < len(data):
+        assert data[p:p + 2] == HEADER
+        fmt = by_type[data[p + 2]]
+        if fmt.columns.startswith("TimeUS"):
+            t, = struct.unpack_from("<Q", data, p + 3)
+            struct.pack_into("<Q", data, p + 3, int(boot(t)))
+        if fmt is GPS:
+            at = p + 3 + struct.calcsize("<QBB")        # TimeUS, I, Status, then GMS
+            ms, = struct.unpack_from("<I", data, at)
+            struct.pack_into("<I", data, at, int(gps_ms(ms)))
+        p += fmt.length
+    dst.write_bytes(bytes(data))
+
+
+def test_an_autopilot_clock_running_slow_is_put_on_the_receivers_time(paper, tmp_path):
+    """The paper scenario logged by an autopilot whose clock ran 8 % slow against true time (a 2014
+    Linux autopilot's did): every interval it stamped 8 % short, the IMU's with the rest. Read
+    against the GNSS receiver's own time, the stamps are scaled back and said; the run is the clean
+    log's: the attack at the same GNSS sample, no false alarm."""
+    _, bin_ = paper
+    skewed = tmp_path / "slow.bin"
+    _restamp(bin_, skewed, boot=lambda t: t / 1.08)
+    clean, slow = replay(str(bin_)), replay(str(skewed))
+    assert not any("clock ran" in n for n in clean["notes"])
+    said = [n for n in slow["notes"] if "clock ran" in n]
+    assert said and "8.0 % slow" in said[0] and "scaled by 1.08" in said[0], slow["notes"]
+    assert alarms(slow) == alarms(clean) and alarms(clean)[0][:2] == (400, "gnss_pos")
+
+
+def test_a_receiver_time_that_jumps_corrects_nothing(paper, tmp_path):
+    """GPS time moved by a minute half-way (a receiver restarting, or a spoofer moving its clock): the
+    two clocks are not in a line, so nothing is scaled, and that is said."""
+    _, bin_ = paper
+    jumped = tmp_path / "jumped.bin"
+    mid_ms = None
+
+    def gps_ms(ms):
+        nonlocal mid_ms
+        mid_ms = ms if mid_ms is None else mid_ms
+        return ms + (60_000 if ms - mid_ms > 25_000 else 0)
+    _restamp(bin_, jumped, gps_ms=gps_ms)
+    report = replay(str(jumped))
+    said = [n for n in report["notes"] if "clock ran" in n]
+    assert said and "time stamps left as logged" in said[0], report["notes"]
+    assert alarms(report) == alarms(replay(str(bin_)))

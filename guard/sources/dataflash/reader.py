@@ -14,6 +14,7 @@ Units, as ArduPilot logs them, converted here to the samples' SI units:
 
 from __future__ import annotations
 
+import dataclasses
 import heapq
 import math
 import struct
@@ -73,6 +74,7 @@ class DataFlashReader(LogSource):
         self._att = ("ATT", lg.offsets("ATT")) if lg.offsets("ATT") else None
         self._accuracy = survey.accuracies(lg, self._gnss, self._gnss_n)
         self.date, self.utc_offset_us = survey.gps_utc(lg, self._gnss)
+        self._clock = survey.clock_rate(lg, self._gnss, self.notes)     # (t0, rate) or None: as logged
         used = [(f"IMU {self._imu_n}", self._imu), (f"GPS {self._gnss_n}", self._gnss), ("MAG", self._mag),
                 ("ATT", self._att)]
         rates = [f"{label}: {survey.rate(lg, s)} Hz" for label, s in used if s is not None]
@@ -105,6 +107,9 @@ class DataFlashReader(LogSource):
                 self.skipped[reason] += 1
             if sample is None:
                 continue
+            if self._clock is not None:     # on the GNSS receiver's clock (survey.clock_rate)
+                t0, rate = self._clock
+                sample = dataclasses.replace(sample, t_us=t0 + round((sample.t_us - t0) * rate))
             backwards += sample.t_us < last - 1000
             last = sample.t_us
             self.first_time_us = sample.t_us if self.first_time_us is None else self.first_time_us
