@@ -67,6 +67,9 @@ class MonitorConfig:
                                             # (guard.core.longrun); 1, the default: as the model says
 
 
+NO_COMPASS_S = 10.0     # s of IMU samples without a magnetometer reading: an air vehicle has no compass
+
+
 class Monitor:
     """Runs the EKF and the detector over a stream of samples.
 
@@ -97,6 +100,9 @@ class Monitor:
         self.roll = self.pitch = 0.0
         self.inertial: bool | None = None           # None until the IMU's rate is known; False: too slow
         self.imu_rate = StreamRate()
+        self._imu_t0: int | None = None             # the IMU stream's first sample, and whether a magnetometer
+        self._mag_heard = False                     # reading has come with any sample since
+        self._mag_raw: tuple | None = None          # the magnetometer reading of the last IMU sample, as read
         self._last_mag: tuple[float, float] | None = None     # levelled (m_x, m_y) of the latest IMU sample
         self._learnt: Learnt | None = None          # what a restarted filter keeps of the vehicle (_reinitialise)
         self._reset()
@@ -291,6 +297,15 @@ class Monitor:
         events = self._imu_rate(s.t_us)
         ax, ay, rate, mag, tilt, tilt_rate = level(s, self.roll, self.pitch)
         self._last_mag = mag
+        events += self._compass(s.t_us, mag is not None)
+        raw = (s.mag_x_gauss, s.mag_y_gauss, s.mag_z_gauss)
+        if raw == self._mag_raw:
+            # the reading the last sample carried, again: a log or a link carries a slower compass's
+            # latest reading on every IMU sample (a 2 Hz one on 220 IMU samples a second). It is
+            # one measurement: fused and tested once, not as many times as it rides along (each
+            # repeat would count its error again, and a CUSUM sums it into an alarm within seconds)
+            mag = None
+        self._mag_raw = raw
         self.imu_aid.noise.add(s.t_us, ax, ay, rate, None if mag is None else heading(*mag, self.declination),
                                learn=self.judge.calm)
         if self.inertial is False:
@@ -326,6 +341,27 @@ class Monitor:
             keep.append(len(r) - 1)                # a constraint, not a sensor: never tested, always fused
         self.history.imu_fused(s.t_us, fuse_rows(self.ekf, s.t_us, aid, r, S, PHT, keep, angle), self.ekf.x)
         return events
+
+    def _compass(self, t_us: int, heard: bool) -> list[Event]:
+        """An air vehicle whose IMU has spoken for NO_COMPASS_S without a magnetometer reading (none
+        fitted, or one that reads all zeros) has no heading reference: hovering, nothing observes its
+        heading, which then wanders with the gyro, and every acceleration integrated along a wrong
+        heading is a velocity error the GNSS contradicts (real copters without a compass: 7 to 33 false
+        alarms a flight). Its IMU is then not integrated, as a slow one is not: GNSS position and
+        velocity are tested against each other alone (said once). A ground vehicle keeps its IMU: its
+        sideways constraint makes the GNSS course witness the heading."""
+        self._mag_heard |= heard
+        if self._imu_t0 is None:
+            self._imu_t0 = t_us
+        if self._mag_heard or self.ground or self.inertial is not True or t_us - self._imu_t0 < NO_COMPASS_S * 1e6:
+            return []
+        self.inertial = False
+        if self.ekf is not None:
+            self.ekf.hold_heading()
+            self._heading_unset = False
+        return [Notice(t_us, "warning", f"no magnetometer reading in {NO_COMPASS_S:g} s on an air vehicle: its heading "
+                       "has no reference, the IMU is not integrated; GNSS position and velocity are tested "
+                       "against each other alone (jumps, freezes, drifts)")]
 
     def _imu_rate(self, t_us: int) -> list[Event]:
         """An IMU stream slower than min_imu_hz (telemetry sends RAW_IMU at 1 to 4 Hz) cannot be

@@ -144,3 +144,60 @@ def test_a_diverged_filter_keeps_nothing():
         if [n for n in of(later, Notice) if "filter initialised" in n.text]:
             break
     assert mon.ekf.x[BM] == 0.0 and mon.ekf.P[BM, BM] == FilterConfig().p0_mag_offset_rad ** 2
+
+
+def _slow_compass(samples, every, sigma_deg, seed):
+    """A compass read `every` IMU samples, its latest reading carried on the samples between (as logs
+    and links carry a slower compass's), each reading off by its own noise of sigma_deg."""
+    rng = np.random.default_rng(seed)
+    out, held = [], None
+    for i, s in enumerate(samples):
+        if isinstance(s, GnssFix):
+            out.append(s)
+            continue
+        if held is None or i % every == 0:
+            a = math.radians(rng.normal(0.0, sigma_deg))
+            c, sn = math.cos(a), math.sin(a)
+            held = (c * s.mag_x_gauss - sn * s.mag_y_gauss, sn * s.mag_x_gauss + c * s.mag_y_gauss, s.mag_z_gauss)
+        out.append(dataclasses.replace(s, mag_x_gauss=held[0], mag_y_gauss=held[1], mag_z_gauss=held[2]))
+    return out
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_a_slow_compass_carried_on_every_imu_sample_is_one_measurement_per_reading(seed):
+    """A 2 Hz compass with 2 degrees of noise per reading, its reading repeated on the 50 Hz IMU
+    samples between: tested once per reading, as the noise it has, it never alarms (tested on every
+    sample, each reading's error counted 25 times, it alarmed within seconds); a 15 degree turn of it
+    at 120 s is still caught within 2 s."""
+    samples = _slow_compass(drive(180.0, yaw=0.4, seed=seed), 25, 2.0, seed)
+    mon, events = run(samples, GROUND)
+    assert [a for a in of(events, Alarm) if a.sensor == "mag"] == []
+    attacked = _slow_compass(drive(180.0, yaw=0.4, seed=seed, mag_offset_deg=0.0), 25, 2.0, seed)
+    k = next(i for i, s in enumerate(attacked) if s.t_us >= T0_US + 120_000_000)
+    turned = _slow_compass(drive(180.0, yaw=0.4, seed=seed, mag_offset_deg=15.0), 25, 2.0, seed)
+    mon, events = run(attacked[:k] + turned[k:], GROUND)
+    after = [a for a in of(events, Alarm) if a.t_us >= T0_US + 120_000_000]
+    assert after and after[0].sensor == "mag" and after[0].t_us - (T0_US + 120_000_000) < 2_000_000, after[:1]
+
+
+AIR = MonitorConfig(declination_deg=0.0, vehicle="air")
+
+
+def test_an_air_vehicle_without_a_compass_is_tested_on_its_gnss_alone_and_says_so():
+    """No magnetometer reading at all (none fitted, or one that reads zeros): after 10 s of IMU an
+    air vehicle's IMU is not integrated (its heading has no reference), said once; clean, it is quiet;
+    a 10 m step on the GNSS still alarms at once."""
+    samples = drive(120.0, yaw=0.4, seed=13, mag=lambda t: False,
+                    gnss_offset=lambda t: (0.0, 10.0 if t >= 90.0 else 0.0))
+    mon, events = run(samples, AIR)
+    said = [n for n in of(events, Notice) if "no magnetometer reading" in n.text]
+    assert len(said) == 1 and said[0].level == "warning" and mon.inertial is False
+    alarm, *_ = of(events, Alarm)
+    assert (alarm.sensor, alarm.channel) == ("gnss_pos", "north") and alarm.t_us - (T0_US + 90_000_000) < 250_000
+
+
+def test_a_ground_vehicle_without_a_compass_keeps_its_imu():
+    """On wheels the GNSS course witnesses the heading: the IMU stays integrated, nothing is said."""
+    mon, events = run(drive(60.0, yaw=0.4, seed=14, mag=lambda t: False), GROUND)
+    assert mon.inertial is True and not [n for n in of(events, Notice) if "no magnetometer" in n.text]
+    assert of(events, Alarm) == []
