@@ -94,6 +94,8 @@ class FilterConfig:
     q_heading_rad: float = 0.005
     q_vel_mps: float = 0.05
     q_yaw_rate_radps: float = 0.5     # yaw acceleration
+    q_yaw_rate_air_radps: float = 3.0  # an air vehicle's: a multicopter yaws by differential torque and starts
+                                      # a turn at several rad/s^2 (real copters' gyros stepped 0.35 rad/s in 20 ms)
     q_accel_mps2: float = 2.0         # jerk
     q_accel_no_imu_mps2: float = 3.0  # jerk when no IMU measures the acceleration (GNSS alone): a vehicle's own
     q_gyro_bias_radps: float = 1e-4
@@ -182,10 +184,14 @@ class NavEKF:
         self.P[TH, TH] = c.p0_heading_rad ** 2
 
     def tilting(self, air: bool) -> None:
-        """An air vehicle's accelerometer biases follow q_accel_bias_air_mps2, a ground vehicle's
-        q_accel_bias_mps2 (see FilterConfig)."""
+        """An air vehicle's accelerometer biases follow q_accel_bias_air_mps2 and its yaw rate
+        q_yaw_rate_air_radps, a ground vehicle's q_accel_bias_mps2 and q_yaw_rate_radps (see
+        FilterConfig)."""
         q = self.cfg.q_accel_bias_air_mps2 if air else self.cfg.q_accel_bias_mps2
         self.q[BAX] = self.q[BAY] = q * q
+        if self.q[W] > 0.0:                     # a held heading (GNSS alone) stays held
+            w = self.cfg.q_yaw_rate_air_radps if air else self.cfg.q_yaw_rate_radps
+            self.q[W] = w * w
 
     def hold_heading(self) -> None:
         """GNSS alone (no IMU fast enough to integrate): the heading, yaw rate and IMU biases are held

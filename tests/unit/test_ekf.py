@@ -441,3 +441,17 @@ def test_the_learnt_vehicle_is_held_while_a_test_is_near_its_threshold():
         moved[learning] = ekf.x - x0
     assert moved[True][KS] != 0.0 and moved[True][BM] != 0.0
     assert moved[False][KS] == 0.0 and moved[False][BM] == 0.0 and moved[False][VY] != 0.0
+
+
+def test_an_air_vehicle_yaws_faster_than_a_car_and_a_held_heading_stays_held():
+    """The yaw rate's random walk: q_yaw_rate_air_radps in the air, q_yaw_rate_radps on wheels; a
+    filter on GNSS alone (heading held) keeps it at 0 whatever it flies as."""
+    cfg = FilterConfig()
+    ekf = NavEKF(cfg, np.zeros(N_STATES))
+    ekf.tilting(True)
+    assert ekf.q[W] == pytest.approx(cfg.q_yaw_rate_air_radps ** 2) and cfg.q_yaw_rate_air_radps > cfg.q_yaw_rate_radps
+    ekf.tilting(False)
+    assert ekf.q[W] == pytest.approx(cfg.q_yaw_rate_radps ** 2)
+    ekf.hold_heading()
+    ekf.tilting(True)
+    assert ekf.q[W] == 0.0
