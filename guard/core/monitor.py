@@ -102,7 +102,6 @@ class Monitor:
         self.imu_rate = StreamRate()
         self._imu_t0: int | None = None             # the IMU stream's first sample, and whether a magnetometer
         self._mag_heard = False                     # reading has come with any sample since
-        self._mag_raw: tuple | None = None          # the magnetometer reading of the last IMU sample, as read
         self._last_mag: tuple[float, float] | None = None     # levelled (m_x, m_y) of the latest IMU sample
         self._learnt: Learnt | None = None          # what a restarted filter keeps of the vehicle (_reinitialise)
         self._reset()
@@ -298,14 +297,6 @@ class Monitor:
         ax, ay, rate, mag, tilt, tilt_rate = level(s, self.roll, self.pitch)
         self._last_mag = mag
         events += self._compass(s.t_us, mag is not None)
-        raw = (s.mag_x_gauss, s.mag_y_gauss, s.mag_z_gauss)
-        if raw == self._mag_raw:
-            # the reading the last sample carried, again: a log or a link carries a slower compass's
-            # latest reading on every IMU sample (a 2 Hz one on 220 IMU samples a second). It is
-            # one measurement: fused and tested once, not as many times as it rides along (each
-            # repeat would count its error again, and a CUSUM sums it into an alarm within seconds)
-            mag = None
-        self._mag_raw = raw
         self.imu_aid.noise.add(s.t_us, ax, ay, rate, None if mag is None else heading(*mag, self.declination),
                                learn=self.judge.calm)
         if self.inertial is False:

@@ -8,8 +8,9 @@ Decoding uses dronecan's transport layer (`Frame`, `TransferManager`, `Transfer.
 a small bridge from python-can messages; dronecan's own python-can driver is not used.
 
 Read: `uavcan.equipment.gnss.Fix2` (1063) from the GNSS node, `uavcan.equipment.ahrs.RawIMU` (1003)
-and `uavcan.equipment.ahrs.MagneticFieldStrength2` (1002, gauss) from the IMU node. Each ImuSample
-carries the latest magnetometer reading of the IMU node (None until one arrived).
+and `uavcan.equipment.ahrs.MagneticFieldStrength2` (1002, gauss) from the IMU node. Each magnetometer
+reading rides on the first ImuSample after it, and on no other (a slower compass is one measurement
+per reading, not one per IMU sample).
 
 Time stamps (`time_source`):
 - "message" (default): t_us is `timestamp.usec` of Fix2 and of RawIMU, the bus's shared time base,
@@ -221,6 +222,7 @@ class CanSource:
                 self.stats["bad_value"] += 1
                 return None
             mx, my, mz = self._mag if self._mag is not None else (None, None, None)
+            self._mag = None            # one reading, one measurement: on the first IMU sample after it only
             return ImuSample(t_us, ax, ay, az, gx, gy, gz, mx, my, mz)
         fix_ok = m.status >= 3                      # STATUS_3D_FIX
         lat, lon = m.latitude_deg_1e8 / 1e8, m.longitude_deg_1e8 / 1e8

@@ -88,7 +88,8 @@ def test_round_trip_units(pair):
     imu1 = pub.encode_imu(1_010_000, acc, gyro)
     mag_msgs = pub.encode_mag(1_015_000, mag)
     imu2 = pub.encode_imu(1_020_000, acc, gyro)
-    fix, first, second = send_read(source, pub, gnss + imu1 + mag_msgs + imu2)
+    imu3 = pub.encode_imu(1_030_000, acc, gyro)
+    fix, first, second, third = send_read(source, pub, gnss + imu1 + mag_msgs + imu2 + imu3)
 
     assert isinstance(fix, GnssFix) and fix.fix_ok and fix.t_us == 1_000_000
     assert fix.lat_deg == round(GNSS["lat_deg"] * 1e8) / 1e8           # integer 1e-8 deg
@@ -107,7 +108,9 @@ def test_round_trip_units(pair):
     assert (first.mag_x_gauss, first.mag_y_gauss, first.mag_z_gauss) == (None, None, None)
     assert second.t_us == 1_020_000
     assert (second.mag_x_gauss, second.mag_y_gauss, second.mag_z_gauss) == tuple(f16(m) for m in mag)
-    assert source.messages == {"uavcan.equipment.gnss.Fix2": 1, "uavcan.equipment.ahrs.RawIMU": 2,
+    # one reading, one measurement: the next IMU sample does not carry it again
+    assert (third.mag_x_gauss, third.mag_y_gauss, third.mag_z_gauss) == (None, None, None)
+    assert source.messages == {"uavcan.equipment.gnss.Fix2": 1, "uavcan.equipment.ahrs.RawIMU": 3,
                                "uavcan.equipment.ahrs.MagneticFieldStrength2": 1}
     assert sum(source.stats.values()) == 0
 

@@ -5,8 +5,10 @@ Units, as ArduPilot logs them, converted here to the samples' SI units:
   GPS time of week in `TimeMS`/`Week`). All samples are on this one time base.
 - IMU (IMU, IMU2.. or an instance column `I`): GyrX..Z rad/s, AccX..Z m/s^2 specific force (about
   -9.8 on z at rest), body frame x forward, y right, z down (FRD), corrected and rotated to the body.
-- MAG: MagX..Z milligauss (int16), body frame, offsets applied. All zero: no compass. The latest
-  reading rides on the IMU samples while it is fresh (`guard.sources.logs_common.mag_fresh`).
+- MAG: MagX..Z milligauss (int16), body frame, offsets applied. All zero: no compass. Each reading
+  rides on the first IMU sample after it, if that is fresh (`guard.sources.logs_common.mag_fresh`),
+  and on no other: a 10 Hz compass among 50 Hz IMU samples is 10 measurements a second, not 50 (the
+  same error counted five times over, which a CUSUM sums into alarms).
 - GPS: Status (AP_GPS::GPS_Status, 3 = 3D fix and better), Lat/Lng degE7, Alt cm, Spd m/s, GCrs deg
   (ground course), VZ m/s. GPA (written with the same TimeUS): HAcc m and SAcc m/s, stored in cm ('C').
 - ATT: Roll, Pitch in centidegrees ('c'); a roll beyond 180 degrees or a pitch beyond 1.5 rad is corrupt.
@@ -143,6 +145,7 @@ class DataFlashReader(LogSource):
         mag = self._mag_now
         if mag is None or not mag_fresh(t, mag[0]):
             return ImuSample(int(t), ax, ay, az, gx, gy, gz, None, None, None), None
+        self._mag_now = None            # one reading, one measurement: it rides on the first IMU sample only
         return ImuSample(int(t), ax, ay, az, gx, gy, gz, mag[1], mag[2], mag[3]), None
 
     def _mag_reading(self, v: tuple) -> tuple[None, str | None]:

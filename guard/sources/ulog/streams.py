@@ -11,8 +11,8 @@ and frames, from PX4's msg definitions (msg/*.msg):
   m/s^2 (about -9.8 on z at rest), body FRD; `timestamp` is the gyro's sample time, the
   accelerometer's is timestamp + accelerometer_timestamp_relative (0x7fffffff: no valid sample).
   `vehicle_imu` instance N (imu=N): delta_angle rad and delta_velocity m/s over delta_*_dt us.
-- `vehicle_magnetometer`: magnetometer_ga, gauss, body FRD; attached to an IMU sample when under 0.5 s
-  old (`guard.sources.logs_common.mag_fresh`).
+- `vehicle_magnetometer`: magnetometer_ga, gauss, body FRD; each reading attached to the first IMU
+  sample after it, when under 0.5 s old (`guard.sources.logs_common.mag_fresh`), and to no other.
 - `vehicle_attitude`: q = (w, x, y, z), rotation from body FRD to NED: roll and pitch in radians.
 - `vehicle_status`: system_type (the MAVLink MAV_TYPE of its HEARTBEAT) or vehicle_type (1 rotary
   wing, 2 fixed wing, 3 rover, 4 airship) or, in old logs, is_rotary_wing.
@@ -168,6 +168,9 @@ def _latest_mag(mag, t: np.ndarray, skipped) -> tuple[list[np.ndarray], np.ndarr
     mt, m = mt[ok], [c[ok] for c in m]
     i = np.searchsorted(mt, t, side="right") - 1
     has = (i >= 0) & mag_fresh(t, mt[np.maximum(i, 0)]) if mt.size else np.zeros(t.size, bool)
+    # one reading, one measurement: on the first IMU sample after it only (a 2 Hz magnetometer among
+    # 220 IMU samples a second is 2 measurements a second, not 220)
+    has &= np.concatenate(([True], i[1:] != i[:-1])) if t.size else has
     i = np.maximum(i, 0)
     return ([c[i] for c in m] if mt.size else [np.zeros(t.size)] * 3), has
 
