@@ -77,7 +77,7 @@ class FilterConfig:
 
     gnss_pos_sigma_m: float = 0.35    # the floor of a fix's position noise (guard.core.aiding.gnss)
     gnss_pos_acc_fraction: float = 0.4   # the share of the receiver's h_acc taken as its epoch-to-epoch noise
-    gnss_pos_unreported_m: float = 0.5   # a receiver that reports no accuracy
+    gnss_pos_unreported_m: float = 0.5   # a receiver that reports no accuracy (per unit of HDOP, where it gives one)
     gnss_vel_sigma_mps: float = 0.06  # the floor of a fix's velocity noise
     gnss_vel_unreported_mps: float = 0.3   # a receiver that reports no speed accuracy
     heading_sigma_rad: float = 0.03   # the magnetometer heading's floor (see gyro_sigma_radps)

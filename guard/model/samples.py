@@ -27,6 +27,8 @@ class GnssFix:
     vel_e_mps: float | None  # ground velocity, east
     h_acc_m: float | None    # receiver's horizontal accuracy estimate, when it sends one
     vel_acc_mps: float | None
+    hdop: float | None = None   # horizontal dilution of precision, where the receiver gives one (a receiver
+                                # that reports no accuracy still reports its geometry)
 
 
 @dataclass(frozen=True, slots=True)

@@ -22,6 +22,7 @@ from guard.model.samples import Attitude, GnssFix, ImuSample, Sample, VehicleTyp
 
 G = 9.80665
 UNKNOWN_U16 = 65535
+MAX_EPH = 5_000                      # HDOP x 100: beyond 50 a fix is no fix, and the value is not used
 WANTED = {mavlink.MAVLINK_MSG_ID_GPS_RAW_INT, mavlink.MAVLINK_MSG_ID_RAW_IMU, mavlink.MAVLINK_MSG_ID_ATTITUDE,
           mavlink.MAVLINK_MSG_ID_HEARTBEAT}
 
@@ -47,8 +48,9 @@ def to_sample(msg) -> tuple[Sample | None, str | None]:
             vn, ve = speed * math.cos(cog), speed * math.sin(cog)
         h_acc = getattr(msg, "h_acc", 0)
         vel_acc = getattr(msg, "vel_acc", 0)
+        hdop = msg.eph / 100.0 if 0 < msg.eph < MAX_EPH else None     # HDOP x 100; UINT16_MAX: unknown
         return GnssFix(int(msg.time_usec), fix_ok, lat, lon, msg.alt / 1000.0, vn, ve,
-                       h_acc / 1000.0 if h_acc else None, vel_acc / 1000.0 if vel_acc else None), None
+                       h_acc / 1000.0 if h_acc else None, vel_acc / 1000.0 if vel_acc else None, hdop), None
     if name == "RAW_IMU":
         a, w = G / 1000.0, 1e-3
         mag = (msg.xmag, msg.ymag, msg.zmag)

@@ -31,9 +31,9 @@ def wire(msg, sender=None):
     return mavlink.MAVLink(None).decode(bytearray(buf))
 
 
-def gps(lat=404237000, lon=-869212000, alt=187000, vel=500, cog=0, fix_type=3, h_acc=1500, vel_acc=250):
+def gps(lat=404237000, lon=-869212000, alt=187000, vel=500, cog=0, fix_type=3, h_acc=1500, vel_acc=250, eph=100):
     mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
-    return wire(mav.gps_raw_int_encode(123_456_789, fix_type, lat, lon, alt, 100, 150, vel, cog, 12,
+    return wire(mav.gps_raw_int_encode(123_456_789, fix_type, lat, lon, alt, eph, 150, vel, cog, 12,
                                        alt_ellipsoid=alt, h_acc=h_acc, v_acc=2000, vel_acc=vel_acc), mav)
 
 
@@ -75,6 +75,13 @@ def test_gps_accuracies_mm_to_m():
     sample, _ = to_sample(gps(h_acc=1234, vel_acc=56))
     assert sample.h_acc_m == pytest.approx(1.234, abs=1e-12)
     assert sample.vel_acc_mps == pytest.approx(0.056, abs=1e-12)
+
+
+@pytest.mark.parametrize("eph, hdop", [(100, 1.0), (196, 1.96), (65535, None), (0, None), (9999, None)])
+def test_gps_hdop_from_eph(eph, hdop):
+    """eph is HDOP x 100; UINT16_MAX is unknown, and 0 or beyond 50 is not a geometry."""
+    sample, _ = to_sample(gps(eph=eph))
+    assert sample.hdop == (None if hdop is None else pytest.approx(hdop))
 
 
 def test_gps_accuracy_zero_means_not_sent():

@@ -206,3 +206,44 @@ def test_a_ground_vehicle_without_a_compass_keeps_its_imu():
     mon, events = run(drive(60.0, yaw=0.4, seed=14, mag=lambda t: False), GROUND)
     assert mon.inertial is True and not [n for n in of(events, Notice) if "no magnetometer" in n.text]
     assert of(events, Alarm) == []
+
+
+def test_a_receiver_that_reports_only_its_hdop_is_trusted_by_it():
+    """Position noise with no h_acc: gnss_pos_unreported_m per unit of HDOP (0.5 m at HDOP 1, the
+    default's level), within the floor and the cap."""
+    from guard.core.aiding.gnss import GnssAiding
+    f = FilterConfig()
+    aid = GnssAiding(f)
+    fix = GnssFix(T0_US, True, 0.0, 0.0, 0.0, None, None, None, None)
+    assert aid.sigma_pos(fix) == f.gnss_pos_unreported_m
+    assert aid.sigma_pos(dataclasses.replace(fix, hdop=1.0)) == pytest.approx(f.gnss_pos_unreported_m)
+    assert aid.sigma_pos(dataclasses.replace(fix, hdop=2.0)) == pytest.approx(2 * f.gnss_pos_unreported_m)
+    assert aid.sigma_pos(dataclasses.replace(fix, hdop=0.3)) == f.gnss_pos_sigma_m
+    assert aid.sigma_pos(dataclasses.replace(fix, hdop=40.0)) == pytest.approx(10 * f.gnss_pos_sigma_m)
+    assert aid.sigma_pos(dataclasses.replace(fix, h_acc_m=1.0, hdop=3.0)) == pytest.approx(0.4)   # h_acc first
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_an_older_receiver_wandering_at_its_hdop_is_quiet_and_a_step_still_caught(seed):
+    """A receiver with no h_acc at HDOP 2 whose position wanders against its own velocity by about a
+    metre over tens of seconds (the Erle PXF flights' receivers): read by its HDOP it is quiet, its
+    test's largest statistic well under the one it reaches read as an unreported receiver (HDOP 1),
+    where it alarms on two seeds of three; a 10 m step is caught at once."""
+    rng = np.random.default_rng(seed)
+    walk = np.cumsum(rng.normal(0.0, 0.12, (3001, 2)), axis=0)     # m, one step per 0.2 s fix
+    walk -= np.linspace(0, 1, 3001)[:, None] * walk[-1]             # a wander, not a drift
+    def wander(t, step=0.0):
+        i = min(int(t / 0.2), 3000)
+        return walk[i, 0], walk[i, 1] + step
+    clean = drive(600.0, yaw=0.4, seed=seed, gnss_offset=wander, vel_acc=None, h_acc=None)
+    with_hdop = [dataclasses.replace(s, hdop=2.0) if isinstance(s, GnssFix) else s for s in clean]
+    mon, events = run(with_hdop, GROUND)
+    assert [a for a in of(events, Alarm) if a.sensor == "gnss_pos"] == []
+    read_by_hdop = mon.detector.peak["gnss_pos"]
+    mon, events = run(clean, GROUND)
+    assert read_by_hdop < 0.75 * mon.detector.peak["gnss_pos"], (read_by_hdop, mon.detector.peak["gnss_pos"])
+    stepped = drive(600.0, yaw=0.4, seed=seed, vel_acc=None, h_acc=None,
+                    gnss_offset=lambda t: wander(t, 10.0 if t >= 300.0 else 0.0))
+    _, events = run([dataclasses.replace(s, hdop=2.0) if isinstance(s, GnssFix) else s for s in stepped], GROUND)
+    after = [a for a in of(events, Alarm) if a.t_us >= T0_US + 300_000_000]
+    assert after and after[0].sensor == "gnss_pos" and after[0].t_us - (T0_US + 300_000_000) < 400_000, after[:1]

@@ -9,8 +9,11 @@ claims a huge error would otherwise blind every test):
               correlated error too, which the filter follows (q_pos_m); the innovation sees the
               epoch-to-epoch part, about 0.4 of it on u-blox receivers
     velocity  sigma = max(gnss_vel_sigma_mps, vel_acc): the speed accuracy is an epoch's noise
-and where it sends none, gnss_pos_unreported_m and gnss_vel_unreported_mps (real receivers' levels,
-as EKF3's defaults, not the simulator's).
+and where it sends none, gnss_vel_unreported_mps and, for the position, gnss_pos_unreported_m per
+unit of the fix's HDOP where it gives one (an older receiver reports its geometry, not its accuracy:
+at HDOP 1, 0.5 m; the Erle PXF's receivers flew at HDOP 1.3 to 2, their position wandering against
+their own velocity by a metre), else gnss_pos_unreported_m (real receivers' levels, as EKF3's
+defaults, not the simulator's).
 """
 
 from __future__ import annotations
@@ -51,6 +54,8 @@ class GnssAiding:
     def sigma_pos(self, fix: GnssFix) -> float:
         f = self.f
         if not fix.h_acc_m:
+            if fix.hdop:            # no accuracy, but its geometry: gnss_pos_unreported_m per unit of HDOP
+                return min(max(f.gnss_pos_sigma_m, f.gnss_pos_unreported_m * fix.hdop), ACC_CAP * f.gnss_pos_sigma_m)
             return f.gnss_pos_unreported_m
         return min(max(f.gnss_pos_sigma_m, f.gnss_pos_acc_fraction * fix.h_acc_m), ACC_CAP * f.gnss_pos_sigma_m)
 

@@ -10,7 +10,7 @@ Units, as ArduPilot logs them, converted here to the samples' SI units:
   and on no other: a 10 Hz compass among 50 Hz IMU samples is 10 measurements a second, not 50 (the
   same error counted five times over, which a CUSUM sums into alarms).
 - GPS: Status (AP_GPS::GPS_Status, 3 = 3D fix and better), Lat/Lng degE7, Alt cm, Spd m/s, GCrs deg
-  (ground course), VZ m/s. GPA (written with the same TimeUS): HAcc m and SAcc m/s, stored in cm ('C').
+  (ground course), VZ m/s, HDop (stored x 100, 'c'). GPA (written with the same TimeUS): HAcc m and SAcc m/s, stored in cm ('C').
 - ATT: Roll, Pitch in centidegrees ('c'); a roll beyond 180 degrees or a pitch beyond 1.5 rad is corrupt.
 """
 
@@ -90,7 +90,7 @@ class DataFlashReader(LogSource):
             yield VehicleType(self.ground)
         self._mag_now = None
         streams = [(s, convert, cols) for s, convert, cols in (
-            (self._gnss, self._gnss_sample, ["Status", "Lat", "Lng", "Alt", "Spd", "GCrs"]),
+            (self._gnss, self._gnss_sample, ["Status", "Lat", "Lng", "Alt", "Spd", "GCrs", "HDop"]),
             (self._imu, self._imu_sample, ["AccX", "AccY", "AccZ", "GyrX", "GyrY", "GyrZ"]),
             (self._mag, self._mag_reading, ["MagX", "MagY", "MagZ"]),
             (self._att, self._attitude, ["Roll", "Pitch"])) if s is not None]
@@ -122,7 +122,7 @@ class DataFlashReader(LogSource):
             self.notes.append(f"{backwards} samples earlier than the one before them (file order kept)")
 
     def _gnss_sample(self, v: tuple) -> tuple[GnssFix | None, str | None]:
-        t, status, lat, lon, alt, speed, course = v
+        t, status, lat, lon, alt, speed, course, hdop = v
         if not (0 <= status <= 8 and math.isfinite(lat) and math.isfinite(lon) and math.isfinite(alt)):
             return None, "bad_message"      # (None, a column a corrupt format lacks: TypeError, bad_message too)
         fix = status >= 3
@@ -135,7 +135,8 @@ class DataFlashReader(LogSource):
             c = math.radians(course)
             vn, ve = speed * math.cos(c), speed * math.sin(c)
         h_acc, vel_acc = self._accuracy.get(t, (None, None))
-        return GnssFix(int(t), fix, lat, lon, alt, vn, ve, h_acc, vel_acc), None
+        hdop = hdop if isinstance(hdop, int | float) and 0.0 < hdop < 50.0 else None   # else unknown or corrupt
+        return GnssFix(int(t), fix, lat, lon, alt, vn, ve, h_acc, vel_acc, hdop), None
 
     def _imu_sample(self, v: tuple) -> tuple[ImuSample | None, str | None]:
         t, ax, ay, az, gx, gy, gz = v
