@@ -97,7 +97,9 @@ class FilterConfig:
     q_yaw_rate_air_radps: float = 3.0  # an air vehicle's: a multicopter yaws by differential torque and starts
                                       # a turn at several rad/s^2 (real copters' gyros stepped 0.35 rad/s in 20 ms)
     q_accel_mps2: float = 2.0         # jerk
-    q_accel_no_imu_mps2: float = 3.0  # jerk when no IMU measures the acceleration (GNSS alone): a vehicle's own
+    q_accel_no_imu_mps2: float = 5.0  # jerk when no IMU measures the acceleration (GNSS alone): a vehicle's own
+                                      # manoeuvres between fixes (a copter tilting 10 degrees in a third of a
+                                      # second: 5 m/s^3; at 3, real copters' 1 Hz telemetry alarmed every few minutes)
     q_gyro_bias_radps: float = 1e-4
     q_accel_bias_mps2: float = 1e-3
     q_accel_bias_air_mps2: float = 0.01   # a vehicle that tilts: its levelled accelerometers carry the attitude's
