@@ -195,6 +195,10 @@ class NavEKF:
             w = self.cfg.q_yaw_rate_air_radps if air else self.cfg.q_yaw_rate_radps
             self.q[W] = w * w
 
+    def wander(self, q_pos: float) -> None:
+        """The position's random walk (m/sqrt(s)): the receiver's correlated error the estimate follows."""
+        self.q[X] = self.q[Y] = q_pos * q_pos
+
     def hold_heading(self) -> None:
         """GNSS alone (no IMU fast enough to integrate): the heading, yaw rate and IMU biases are held
         where they are, without noise, so that the model is the linear one of a body velocity and

@@ -222,6 +222,7 @@ class Monitor:
             events.append(Notice(fix.t_us, "info", "GNSS fix back" if self.ekf else "GNSS fix: monitoring starts"))
         if self.ekf is None:
             return events + self._initialise(fix)
+        self.ekf.wander(self.gnss_aid.q_pos(fix))
         self._advance(fix.t_us)
         why = diverged(self.ekf)
         if why:

@@ -210,7 +210,7 @@ def test_a_ground_vehicle_without_a_compass_keeps_its_imu():
 
 def test_a_receiver_that_reports_only_its_hdop_is_trusted_by_it():
     """Position noise with no h_acc: gnss_pos_unreported_m per unit of HDOP (0.5 m at HDOP 1, the
-    default's level), within the floor and the cap."""
+    default's level), within the floor and the cap; its random walk q_pos_m per unit of HDOP."""
     from guard.core.aiding.gnss import GnssAiding
     f = FilterConfig()
     aid = GnssAiding(f)
@@ -221,6 +221,10 @@ def test_a_receiver_that_reports_only_its_hdop_is_trusted_by_it():
     assert aid.sigma_pos(dataclasses.replace(fix, hdop=0.3)) == f.gnss_pos_sigma_m
     assert aid.sigma_pos(dataclasses.replace(fix, hdop=40.0)) == pytest.approx(10 * f.gnss_pos_sigma_m)
     assert aid.sigma_pos(dataclasses.replace(fix, h_acc_m=1.0, hdop=3.0)) == pytest.approx(0.4)   # h_acc first
+    # and the correlated error the estimate follows, per unit of HDOP, never below the default's
+    assert aid.q_pos(fix) == aid.q_pos(dataclasses.replace(fix, hdop=0.6)) == f.q_pos_m
+    assert aid.q_pos(dataclasses.replace(fix, hdop=2.0)) == pytest.approx(2 * f.q_pos_m)
+    assert aid.q_pos(dataclasses.replace(fix, h_acc_m=1.0, hdop=2.0)) == f.q_pos_m
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])

@@ -59,6 +59,15 @@ class GnssAiding:
             return f.gnss_pos_unreported_m
         return min(max(f.gnss_pos_sigma_m, f.gnss_pos_acc_fraction * fix.h_acc_m), ACC_CAP * f.gnss_pos_sigma_m)
 
+    def q_pos(self, fix: GnssFix) -> float:
+        """The position's random walk until this fix: q_pos_m, per unit of HDOP for a receiver read by
+        its HDOP (its correlated error, ionosphere and multipath, grows with the geometry as its
+        noise does)."""
+        f = self.f
+        if fix.h_acc_m or not fix.hdop:
+            return f.q_pos_m
+        return f.q_pos_m * min(max(fix.hdop, 1.0), ACC_CAP)
+
     def sigma_vel(self, fix: GnssFix) -> float:
         f = self.f
         if not fix.vel_acc_mps:
