@@ -102,6 +102,7 @@ class Monitor:
         self.imu_rate = StreamRate()
         self._imu_t0: int | None = None             # the IMU stream's first sample, and whether a magnetometer
         self._mag_heard = False                     # reading has come with any sample since
+        self._no_compass = False                    # the IMU set aside for want of a compass (_compass)
         self._last_mag: tuple[float, float] | None = None     # levelled (m_x, m_y) of the latest IMU sample
         self._learnt: Learnt | None = None          # what a restarted filter keeps of the vehicle (_reinitialise)
         self._reset()
@@ -341,13 +342,19 @@ class Monitor:
         heading is a velocity error the GNSS contradicts (real copters without a compass: 7 to 33 false
         alarms a flight). Its IMU is then not integrated, as a slow one is not: GNSS position and
         velocity are tested against each other alone (said once). A ground vehicle keeps its IMU: its
-        sideways constraint makes the GNSS course witness the heading."""
+        sideways constraint makes the GNSS course witness the heading. A magnetometer that speaks
+        later (one that started late) gives the heading back: the filter starts again, inertial."""
+        if heard and self._no_compass:
+            self._no_compass = False
+            self._mag_heard = self.inertial = True
+            return self._reinitialise(t_us, "a magnetometer reading, after none: the IMU is integrated again")
         self._mag_heard |= heard
         if self._imu_t0 is None:
             self._imu_t0 = t_us
         if self._mag_heard or self.ground or self.inertial is not True or t_us - self._imu_t0 < NO_COMPASS_S * 1e6:
             return []
         self.inertial = False
+        self._no_compass = True
         if self.ekf is not None:
             self.ekf.hold_heading()
             self._heading_unset = False

@@ -251,3 +251,17 @@ def test_an_older_receiver_wandering_at_its_hdop_is_quiet_and_a_step_still_caugh
     _, events = run([dataclasses.replace(s, hdop=2.0) if isinstance(s, GnssFix) else s for s in stepped], GROUND)
     after = [a for a in of(events, Alarm) if a.t_us >= T0_US + 300_000_000]
     assert after and after[0].sensor == "gnss_pos" and after[0].t_us - (T0_US + 300_000_000) < 400_000, after[:1]
+
+
+def test_a_compass_that_starts_late_gives_the_heading_back():
+    """No magnetometer for the first 30 s of an air vehicle's IMU, then one: set aside at 10 s (said),
+    then the filter starts again with its IMU integrated (said), quiet, and a 10 m step caught."""
+    samples = drive(120.0, yaw=0.4, seed=15, mag=lambda t: t >= 30.0,
+                    gnss_offset=lambda t: (0.0, 10.0 if t >= 90.0 else 0.0))
+    mon, events = run(samples, AIR)
+    notes = [n.text for n in of(events, Notice) if "magnetometer" in n.text]
+    assert len(notes) == 2 and notes[0].startswith("no magnetometer reading in 10 s") and \
+        notes[1].startswith("a magnetometer reading, after none"), notes
+    assert mon.inertial is True
+    alarm, *_ = of(events, Alarm)
+    assert (alarm.sensor, alarm.channel) == ("gnss_pos", "north") and alarm.t_us - (T0_US + 90_000_000) < 250_000
