@@ -90,7 +90,7 @@ class FilterConfig:
     lateral_sigma_mps: float = 0.1    # ground vehicles: sideways body velocity (skid), the v_y = 0 pseudo-measurement
     lateral_slip_rad_per_mps2: float = 0.02   # ... and in a turn a tyre's slip angle, per m/s^2 of lateral
                                       # acceleration: adds (this * |yaw rate * v| * v)^2 to its R (a car: 0.005 to 0.01)
-    q_pos_m: float = 0.1              # position random walk, m/sqrt(s): covers correlated GNSS error
+    q_pos_m: float = 0.1              # position random walk, m/sqrt(s): covers correlated GNSS error (per unit of HDOP, guard.core.aiding.gnss)
     q_heading_rad: float = 0.005
     q_vel_mps: float = 0.05
     q_yaw_rate_radps: float = 0.5     # yaw acceleration

@@ -42,10 +42,36 @@ WARN_F = 1.5            # a wander this many times the model's is said
 CLIP = 5.0              # one glitch counts for at most this many sigmas
 
 
+def normalised(r: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """z = r / sqrt(S_ii), each clipped at CLIP."""
+    return np.clip(r / np.sqrt(np.diagonal(S)), -CLIP, CLIP)
+
+
+class BlockMeans:
+    """A sensor's normalised innovations summed per channel over BLOCK samples: add() gives back the
+    block's mean and how long it lasted (s) when it closes, else None (guard tune reads them too)."""
+
+    def __init__(self):
+        self.sum: np.ndarray | None = None
+        self.n = 0
+        self.t0 = 0
+
+    def add(self, z: np.ndarray, t_us: int = 0) -> tuple[np.ndarray, float] | None:
+        if self.sum is None or len(self.sum) != len(z):
+            self.sum, self.n, self.t0 = np.zeros(len(z)), 0, t_us
+        self.sum += z
+        self.n += 1
+        if self.n < BLOCK:
+            return None
+        zbar, duration = self.sum / self.n, max(0.0, (t_us - self.t0) / 1e6)
+        self.sum = None
+        return zbar, duration
+
+
 class LongRun:
     def __init__(self, f_max: float = F_MAX):
         self.f_max = f_max
-        self.blocks: dict[Sensor, list] = {}     # sensor -> [sum of z per channel, n, first t of the block]
+        self.blocks: dict[Sensor, BlockMeans] = {}
         self.v: dict[Sensor, np.ndarray] = {}    # sensor -> mean of N zbar^2 per channel
         self.n: dict[Sensor, float] = {}         # blocks taken
         self.said: set[Sensor] = set()
@@ -66,19 +92,12 @@ class LongRun:
 
     def add(self, sensor: Sensor, t_us: int, r: np.ndarray, S: np.ndarray) -> Notice | None:
         """One calm, fused innovation (against the model's own S, not the scaled one)."""
-        z = np.clip(r / np.sqrt(np.diagonal(S)), -CLIP, CLIP)
-        b = self.blocks.get(sensor)
-        if b is None or len(b[0]) != len(z):
-            b = self.blocks[sensor] = [np.zeros(len(z)), 0, t_us]
-        b[0] += z
-        b[1] += 1
-        if b[1] < BLOCK:
+        closed = self.blocks.setdefault(sensor, BlockMeans()).add(normalised(r, S), t_us)
+        if closed is None:
             return None
-        zbar = b[0] / b[1]
-        duration = max(0.0, (t_us - b[2]) / 1e6)
-        self.blocks[sensor] = [np.zeros(len(z)), 0, t_us]
+        zbar, duration = closed
         n = self.n.get(sensor, 0.0)
-        v = self.v.get(sensor, np.ones(len(z)))
+        v = self.v.get(sensor, np.ones(len(zbar)))
         # a running mean with the model as a prior, until it has TAU_S of blocks; then it forgets
         alpha = max(1.0 / (n + 1.0 + PRIOR_BLOCKS), 1.0 - math.exp(-duration / TAU_S))
         self.v[sensor] = v + alpha * (BLOCK * zbar * zbar - v)

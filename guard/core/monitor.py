@@ -349,9 +349,11 @@ class Monitor:
             self._mag_heard = self.inertial = True
             return self._reinitialise(t_us, "a magnetometer reading, after none: the IMU is integrated again")
         self._mag_heard |= heard
+        if self._mag_heard:                         # the common case, every sample: nothing to decide
+            return []
         if self._imu_t0 is None:
             self._imu_t0 = t_us
-        if self._mag_heard or self.ground or self.inertial is not True or t_us - self._imu_t0 < NO_COMPASS_S * 1e6:
+        if self.ground or self.inertial is not True or t_us - self._imu_t0 < NO_COMPASS_S * 1e6:
             return []
         self.inertial = False
         self._no_compass = True
@@ -393,12 +395,10 @@ class Monitor:
         calm = self.ekf.learning = self.judge.calm      # nothing is learnt while a test is near its threshold
         if fused:
             self.fit.add(sensor, t_us, r, S)
-        if self.longrun is None:
-            pass
-        elif fused and calm:
+        if self.longrun is not None and fused and calm:
             said = self.longrun.add(sensor, t_us, r, S)
             if said:
                 events.append(said)
-        else:
+        elif self.longrun is not None:
             self.longrun.interrupt(sensor)
         return events, fused

@@ -30,7 +30,7 @@ from pathlib import Path
 
 from guard.config import Config
 from guard.core.ekf import BM, KS, FilterConfig
-from guard.core.longrun import BLOCK, CLIP
+from guard.core.longrun import BLOCK, BlockMeans, normalised
 from guard.errors import GuardError
 from guard.model.events import Estimate, Tested
 from guard.model.sensors import Sensor
@@ -58,7 +58,7 @@ class Innovations(Sink):
     def __init__(self):
         self.sum: dict[Sensor, float] = {}
         self.n: dict[Sensor, int] = {}
-        self.block: dict[Sensor, list] = {}     # sensor -> [sum of z per channel, samples]
+        self.block: dict[Sensor, BlockMeans] = {}
         self.wander: dict[Sensor, float] = {}   # sum over closed blocks and channels of BLOCK zbar^2
         self.blocks: dict[Sensor, int] = {}
         self.mag_offset: float | None = None
@@ -69,16 +69,14 @@ class Innovations(Sink):
             if isinstance(e, Tested) and e.innovation.fused:
                 i = e.innovation
                 s = i.sensor
-                z = [min(max(float(r / math.sqrt(S)), -CLIP), CLIP) for r, S in zip(i.r, i.S.diagonal())]
-                self.sum[s] = self.sum.get(s, 0.0) + sum(zi * zi for zi in z)
+                z = normalised(i.r, i.S)
+                self.sum[s] = self.sum.get(s, 0.0) + float(z @ z)
                 self.n[s] = self.n.get(s, 0) + len(z)
-                b = self.block.setdefault(s, [[0.0] * len(z), 0])
-                b[0] = [a + zi for a, zi in zip(b[0], z)]
-                b[1] += 1
-                if b[1] == BLOCK:
-                    self.wander[s] = self.wander.get(s, 0.0) + sum(a * a for a in b[0]) / BLOCK
+                closed = self.block.setdefault(s, BlockMeans()).add(z)
+                if closed is not None:
+                    zbar = closed[0]
+                    self.wander[s] = self.wander.get(s, 0.0) + BLOCK * float(zbar @ zbar)
                     self.blocks[s] = self.blocks.get(s, 0) + len(z)
-                    self.block[s] = [[0.0] * len(z), 0]
             elif isinstance(e, Estimate):
                 self.mag_offset = float(e.x[BM])
                 self.slip = float(e.x[KS])
