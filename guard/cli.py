@@ -49,14 +49,20 @@ def _replay(args) -> int:
         from guard.sinks.plot import plot
         plot(trace, report, args.plot, truth_beside(args.file))
     if args.report != "-":
+        from guard.sinks.report import SKIPPED, FixGap
         alarms = report["alarms"]
         first = (f"first alarm at GNSS sample {alarms[0]['gnss_index']} ({alarms[0]['sensor']} "
                  f"{alarms[0]['channel']})") if alarms else "no alarm"
-        skipped = sum(report["skipped"].values())
         print(f"{args.file}: {report['duration_s']:.1f} s, {report['gnss_samples']} GNSS samples, "
-              f"{len(alarms)} alarm(s), {first}; skipped {skipped}")
+              f"{len(alarms)} alarm(s), {first}")
+        gap = report["estimate_to_fix_m"]
+        if gap["fixes"]:
+            print(f"  the estimate from the fixes: {gap['mean']:.1f} m on average, {gap['max']:.1f} m at most, "
+                  f"more than {FixGap.FAR_M:g} m at {100 * gap[f'share_over_{FixGap.FAR_M:g}']:.1f} % of them")
         for note in report["notes"]:
             print(f"  {note}")
+        for reason, n in sorted(report["skipped"].items(), key=lambda kv: -kv[1]):
+            print(f"  skipped {n} {SKIPPED.get(reason, reason.replace('_', ' '))}")
     return 0
 
 

@@ -54,7 +54,7 @@ def one(job: tuple[str, str | None, tuple[str, ...]]) -> dict:
         return {"log": path, "error": str(e)}
     alarms = Counter(str(a["sensor"]) for a in r["alarms"])
     return {"log": path, "format": r["format"], "duration_s": r["duration_s"], "alarms": dict(alarms),
-            "n_alarms": sum(alarms.values()), "peak_ratio": r["peak_ratio"],
+            "n_alarms": sum(alarms.values()), "peak_ratio": r["peak_ratio"], "estimate_to_fix_m": r["estimate_to_fix_m"],
             "warnings": [n["text"] for n in r["notices"] if n["level"] == "warning"]}
 
 
@@ -81,7 +81,7 @@ def main(argv=None) -> int:
         print(f"guard: {e}", file=sys.stderr)
         return 2
     jobs = [(p, args.config, tuple(args.set)) for p in logs]
-    results, total, hours = [], Counter(), 0.0
+    results, total, hours, fixes, far_fixes = [], Counter(), 0.0, 0, 0.0
     with ProcessPoolExecutor(max(1, args.jobs)) as ex:
         for r in ex.map(one, jobs):
             results.append(r)
@@ -93,11 +93,17 @@ def main(argv=None) -> int:
             hours += r["duration_s"] / 3600.0
             peaks = " ".join(f"{s} {v:.2f}" for s, v in sorted(r["peak_ratio"].items()))
             by = ", ".join(f"{s} {n}" for s, n in sorted(r["alarms"].items())) or "none"
-            print(f"{name}: {r['format']}, {r['duration_s']:.0f} s; alarms {r['n_alarms']} ({by}); peaks {peaks}")
+            gap = r["estimate_to_fix_m"]
+            far = gap["share_over_5"]
+            fixes += gap["fixes"]
+            far_fixes += far * gap["fixes"]
+            print(f"{name}: {r['format']}, {r['duration_s']:.0f} s; alarms {r['n_alarms']} ({by}); peaks {peaks}; "
+                  f"estimate from the fixes {gap['max']:.1f} m at most, over 5 m at {100 * far:.1f} %")
     n = sum(1 for r in results if "error" not in r)
     quiet = sum(1 for r in results if r.get("n_alarms") == 0)
     by = ", ".join(f"{s} {k}" for s, k in sorted(total.items())) or "none"
-    print(f"{n} logs, {hours:.2f} h: {sum(total.values())} alarms ({by}); {quiet} logs without one")
+    print(f"{n} logs, {hours:.2f} h: {sum(total.values())} alarms ({by}); {quiet} logs without one; "
+          f"the estimate over 5 m from the fix at {100 * far_fixes / max(fixes, 1):.1f} % of {fixes} fixes")
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=1))
     return 0

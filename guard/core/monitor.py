@@ -105,6 +105,8 @@ class Monitor:
         self._no_compass = False                    # the IMU set aside for want of a compass (_compass)
         self._last_mag: tuple[float, float] | None = None     # levelled (m_x, m_y) of the latest IMU sample
         self._learnt: Learnt | None = None          # what a restarted filter keeps of the vehicle (_reinitialise)
+        self._fix: GnssFix | None = None            # the latest fix, and where it is in the local frame
+        self._fix_en: tuple[float, float] | None = None
         self._reset()
 
     def _reset(self) -> None:
@@ -229,6 +231,7 @@ class Monitor:
         if why:
             return events + self._reinitialise(fix.t_us, f"the filter diverged ({why})") + self._initialise(fix)
         ekf, history = self.ekf, self.history
+        self._fix, self._fix_en = fix, self.frame.to_en(fix.lat_deg, fix.lon_deg)
         # the state's own time, which a fix stamped before the last IMU sample is not: the rewind
         # re-runs the IMU fusions after it, and only those
         history.epoch(self.t_us, ekf.x, ekf.P)
@@ -237,7 +240,7 @@ class Monitor:
         delayed = history.delay_s > 0
         xd = history.delayed(fix.t_us, self.t_us, ekf.x) if delayed else ekf.x     # the state the fix shows
         before = ekf.x.copy() if delayed else None
-        events += self._measure(Sensor.GNSS_POS, fix.t_us, self.gnss_aid.position(fix, self.frame, xd))
+        events += self._measure(Sensor.GNSS_POS, fix.t_us, self.gnss_aid.position(fix, self._fix_en, xd))
         if delayed:                 # the position's correction, carried to the state the velocity is tested on
             xd = xd + state_minus(ekf.x, before)
         if self.cfg.filter.use_gnss_velocity and fix.vel_n_mps is not None:
@@ -256,13 +259,13 @@ class Monitor:
     def _estimate(self, t_us: int, gnss_index: int) -> Estimate:
         x, f = self.ekf.x, self.frame
         return Estimate(t_us, gnss_index, float(x[0]), float(x[1]), float(x[TH]), x.copy(),
-                        np.diagonal(self.ekf.P).copy(), (f.lat0, f.lon0, f.alt0))
+                        np.diagonal(self.ekf.P).copy(), (f.lat0, f.lon0, f.alt0), self._fix_en)
 
     def _reanchor(self, fix: GnssFix) -> list[Event]:
         """An exclusion has a bounded life (Judge.reanchor)."""
         if Sensor.GNSS_POS not in self.health.excluded:
             return []
-        return self.judge.reanchor(self.ekf, fix, self.frame.to_en(fix.lat_deg, fix.lon_deg), self.gnss_aid,
+        return self.judge.reanchor(self.ekf, fix, self._fix_en, self.gnss_aid,
                                    self.cfg.max_coast_m, self.gnss_index)
 
     def _freeze(self, fix: GnssFix) -> list[Event]:
@@ -313,9 +316,9 @@ class Monitor:
         ax, ay, rate, mag, tilt, tilt_rate, n = due
         self._advance(s.t_us)
         theta = None if mag is None else heading(*mag, self.declination)
-        if theta is None:
+        if theta is None and not self._mag_heard:   # a compass slower than the IMU is not one missing
             self.skipped["imu_no_magnetometer"] += 1
-        elif self._heading_unset:                   # the magnetometer's first word: the heading is its
+        elif theta is not None and self._heading_unset:     # the magnetometer's first word: the heading is its
             self.ekf.set_heading(math.remainder(theta - self.ekf.x[BM], math.tau))
             self._heading_unset = False
         aid, blocks, angle = self.imu_aid.measurement(self.ekf.x, theta, rate, ax, ay, self.ground, tilt,

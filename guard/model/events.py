@@ -93,6 +93,7 @@ class Estimate:
     x: np.ndarray           # the full state, shape (13,) (guard.core.ekf)
     P_diag: np.ndarray      # shape (13,)
     origin: tuple[float, float, float]   # lat_deg, lon_deg, alt_m of the local frame's origin
+    fix_en: tuple[float, float] | None = None   # the fix's own east, north (m): how far the estimate is from it
 
     def lat_lon(self) -> tuple[float, float]:
         """The estimated position in WGS-84 degrees (computed on demand: it costs ~0.1 ms)."""

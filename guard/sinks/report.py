@@ -4,16 +4,67 @@ and the JSON document built from them and from what the reader counted."""
 from __future__ import annotations
 
 import json
+import math
 import sys
 from collections import Counter
 from dataclasses import asdict
 from pathlib import Path
 
-from guard.model.events import Alarm, Cleared, Notice
+from guard.model.events import Alarm, Cleared, Estimate, Notice
 from guard.model.samples import Attitude, GnssFix, ImuSample
 from guard.sinks.base import Sink
 
 KINDS = {GnssFix: "gnss", ImuSample: "imu", Attitude: "attitude"}
+
+# what each reason of the report's `skipped` means, in the words a replay prints it with
+SKIPPED = {
+    "gnss_no_fix": "GNSS messages without a 3D fix (monitoring waits for one, or coasts on the IMU)",
+    "gnss_resent": "GNSS messages resent with a time already seen",
+    "gnss_out_of_order": "GNSS messages stamped before the last one",
+    "imu_resent": "IMU samples resent with a time already seen",
+    "imu_out_of_order": "IMU samples stamped before the last one",
+    "imu_before_first_fix": "IMU samples before the first GNSS fix (nothing to integrate them from)",
+    "imu_too_slow": "IMU samples of a stream too slow to integrate (GNSS tested alone)",
+    "imu_no_magnetometer": "IMU samples without any magnetometer reading (no heading reference)",
+    "time_off_base": "samples stamped far off the stream's time base",
+    "attitude_non_finite": "attitude messages with a non-finite or impossible roll or pitch",
+    "truncated": "messages cut short (the log's end, or a write the logger did not finish)",
+    "garbage_bytes": "bytes between messages that were not a message",
+    "unread_bytes": "bytes after the last readable message",
+    "bad_format": "messages of a format the log defines wrongly",
+    "bad_crc": "MAVLink frames with a bad checksum",
+    "other_system": "messages of another MAVLink system (--system-id 0 reads every system)",
+    "ulog_bad_time": "ULog samples with an impossible time stamp",
+    "ulog_corrupt": "ULog data the reader could not parse",
+    "logger_dropouts": "gaps the ULog logger itself recorded (its dropouts)",
+}
+
+
+class FixGap:
+    """How far the estimate stood from each fix (after fusing it, or beside it when the GNSS is
+    excluded): on a clean flight, within a few metres; coasting away from the fixes is what this
+    shows."""
+
+    FAR_M = 5.0
+
+    def __init__(self):
+        self.n = self.far = 0
+        self.max = self.sum = 0.0
+
+    def add(self, e: Estimate) -> None:
+        if e.fix_en is None:
+            return
+        d = math.hypot(e.east_m - e.fix_en[0], e.north_m - e.fix_en[1])
+        self.n += 1
+        self.sum += d
+        self.max = max(self.max, d)
+        self.far += d > self.FAR_M
+
+    def summary(self) -> dict:
+        """max and mean (m), and the share of fixes more than FAR_M away."""
+        n = max(self.n, 1)
+        return {"max": round(self.max, 2), "mean": round(self.sum / n, 2),
+                f"share_over_{self.FAR_M:g}": round(self.far / n, 4), "fixes": self.n}
 
 
 class ReportSink(Sink):
@@ -22,6 +73,7 @@ class ReportSink(Sink):
         self.cleared: list[dict] = []
         self.notices: list[dict] = []
         self.samples: Counter[str] = Counter()      # samples read, per kind
+        self.gap = FixGap()
 
     def on_sample(self, sample) -> None:
         kind = KINDS.get(type(sample))
@@ -37,6 +89,8 @@ class ReportSink(Sink):
             elif isinstance(e, Cleared):
                 self.cleared.append({"time_usec": e.t_us, "gnss_index": e.gnss_index, "sensor": e.sensor,
                                      "channel": e.channel})
+            elif isinstance(e, Estimate):
+                self.gap.add(e)
             elif isinstance(e, Notice):
                 self.notices.append({"time_usec": e.t_us, "level": e.level, "text": e.text})
 
@@ -61,6 +115,7 @@ class ReportSink(Sink):
             "alarms": self.alarms,
             "cleared": self.cleared,
             "notices": self.notices,
+            "estimate_to_fix_m": self.gap.summary(),
         }
 
 

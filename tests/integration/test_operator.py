@@ -169,3 +169,22 @@ def test_a_udp_port_already_taken_is_refused():
     port = free.getsockname()[1]
     free.close()
     MavlinkLink(f"udpin:127.0.0.1:{port}", LinkConfig()).close()      # a free port opens
+
+
+def test_a_replay_says_how_far_the_estimate_stood_from_the_fixes_and_what_it_skipped(shared, tmp_path, capsys):
+    """The summary a replay prints: the estimate's distance from the fixes (a clean flight: within a
+    few metres), and a line in words for each reason something was skipped; the report has both."""
+    tlog = shared / "data" / SITL
+    if not tlog.exists():
+        pytest.skip(f"{SITL} is not in the shared data")
+    assert main(["replay", str(tlog), "--report", str(tmp_path / "r.json")]) == 0
+    out = capsys.readouterr().out.splitlines()
+    import json
+    report = json.loads((tmp_path / "r.json").read_text())
+    gap = report["estimate_to_fix_m"]
+    assert gap["fixes"] > 0.9 * report["gnss_samples"] and gap["max"] < 3.0, gap
+    said = [line for line in out if "the estimate from the fixes" in line]
+    assert len(said) == 1 and f"{gap['max']:.1f} m at most" in said[0], out
+    skipped = [line.strip() for line in out if line.strip().startswith("skipped ")]
+    assert len(skipped) == len(report["skipped"]) and report["skipped"], (out, report["skipped"])
+    assert not any("_" in line for line in skipped), skipped          # words, not the report's keys

@@ -265,3 +265,4 @@ def test_a_compass_that_starts_late_gives_the_heading_back():
     assert mon.inertial is True
     alarm, *_ = of(events, Alarm)
     assert (alarm.sensor, alarm.channel) == ("gnss_pos", "north") and alarm.t_us - (T0_US + 90_000_000) < 250_000
+

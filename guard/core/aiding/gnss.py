@@ -24,7 +24,6 @@ import numpy as np
 
 from guard.core.aiding import Aid
 from guard.core.ekf import N_STATES, TH, VX, VY, X, Y, FilterConfig
-from guard.core.geo import LocalFrame
 from guard.model.events import Alarm
 from guard.model.samples import GnssFix
 from guard.model.sensors import Sensor
@@ -74,8 +73,9 @@ class GnssAiding:
             return f.gnss_vel_unreported_mps
         return min(max(f.gnss_vel_sigma_mps, fix.vel_acc_mps), ACC_CAP * f.gnss_vel_sigma_mps)
 
-    def position(self, fix: GnssFix, frame: LocalFrame, x: np.ndarray) -> Aid:
-        e, n = frame.to_en(fix.lat_deg, fix.lon_deg)
+    def position(self, fix: GnssFix, en: tuple[float, float], x: np.ndarray) -> Aid:
+        """en: the fix in the local frame (LocalFrame.to_en)."""
+        e, n = en
         # R: the measurement noise covariance
         return Aid(np.array([e, n]), x[:2].copy(), H_POS, np.eye(2) * self.sigma_pos(fix) ** 2)
 
