@@ -167,6 +167,10 @@ class Monitor:
         if self.judge.rewind_epochs:
             self.history.rewind(self.ekf, self.judge.rewind_epochs, self.t_us)
             self.judge.rewind_epochs = 0
+            # what the rewind left may already be more than the other sensors can hold (GNSS alone, where
+            # nothing else holds the position, or a long rewind in the air): then the alarm epoch's own
+            # fix is the anchor, as the next one would be, and the estimate shown never coasts away
+            events += self._reanchor(self._fix)
         if self._estimate_owed:
             events.append(self._estimate(*self._estimate_owed))
             self._estimate_owed = None
