@@ -29,6 +29,7 @@ import numpy as np
 
 from guard.core.aiding import Aid
 from guard.core.aiding.gnss import FreezeWatch, GnssAiding
+from guard.core.aiding.tilt import Tilt
 from guard.core.aiding.imu import Averager, ImuAiding, StreamRate, fuse_rows, heading, level
 from guard.core.anchor import Learnt, diverged, initial_state
 from guard.core.detectors import DetectorConfig, make_detector
@@ -97,7 +98,7 @@ class Monitor:
         # each test's scale for its innovations' wander, the vehicle's (kept through a restart); off at 1
         self.longrun = LongRun(self.cfg.max_wander_factor) if self.cfg.max_wander_factor > 1.0 else None
         self.gnss_index = -1
-        self.roll = self.pitch = 0.0
+        self.tilt = Tilt()                          # the autopilot's roll and pitch, at each IMU sample's time
         self.inertial: bool | None = None           # None until the IMU's rate is known; False: too slow
         self.imu_rate = StreamRate()
         self._imu_t0: int | None = None             # the IMU stream's first sample, and whether a magnetometer
@@ -138,7 +139,7 @@ class Monitor:
     # -- the step -----------------------------------------------------------------------------
     def step(self, sample) -> list[Event]:
         if isinstance(sample, Attitude):
-            self.roll, self.pitch = sample.roll_rad, sample.pitch_rad
+            self.tilt.set(sample)
             return []
         if isinstance(sample, VehicleType):
             return self._vehicle(sample)
@@ -303,7 +304,7 @@ class Monitor:
     # -- IMU ------------------------------------------------------------------------------------
     def _imu(self, s: ImuSample) -> list[Event]:
         events = self._imu_rate(s.t_us)
-        ax, ay, rate, mag, tilt, tilt_rate = level(s, self.roll, self.pitch)
+        ax, ay, rate, mag, tilt, tilt_rate = level(s, *self.tilt.at(s))
         self._last_mag = mag
         events += self._compass(s.t_us, mag is not None)
         self.imu_aid.noise.add(s.t_us, ax, ay, rate, None if mag is None else heading(*mag, self.declination),
