@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from guard.core.aiding import Aid
+from guard.core.aiding.compass import NO_COMPASS_S, CompassWatch
 from guard.core.aiding.gnss import FreezeWatch, GnssAiding
 from guard.core.aiding.tilt import Tilt
 from guard.core.aiding.imu import Averager, ImuAiding, StreamRate, fuse_rows, heading, level
@@ -68,9 +69,6 @@ class MonitorConfig:
                                             # (guard.core.longrun); 1, the default: as the model says
 
 
-NO_COMPASS_S = 10.0     # s of IMU samples without a magnetometer reading: an air vehicle has no compass
-
-
 class Monitor:
     """Runs the EKF and the detector over a stream of samples.
 
@@ -101,9 +99,7 @@ class Monitor:
         self.tilt = Tilt()                          # the autopilot's roll and pitch, at each IMU sample's time
         self.inertial: bool | None = None           # None until the IMU's rate is known; False: too slow
         self.imu_rate = StreamRate()
-        self._imu_t0: int | None = None             # the IMU stream's first sample, and whether a magnetometer
-        self._mag_heard = False                     # reading has come with any sample since
-        self._no_compass = False                    # the IMU set aside for want of a compass (_compass)
+        self.compass = CompassWatch()               # whether an air vehicle has a compass at all
         self._last_mag: tuple[float, float] | None = None     # levelled (m_x, m_y) of the latest IMU sample
         self._learnt: Learnt | None = None          # what a restarted filter keeps of the vehicle (_reinitialise)
         self._fix: GnssFix | None = None            # the latest fix, and where it is in the local frame
@@ -321,7 +317,7 @@ class Monitor:
         ax, ay, rate, mag, tilt, tilt_rate, n = due
         self._advance(s.t_us)
         theta = None if mag is None else heading(*mag, self.declination)
-        if theta is None and not self._mag_heard:   # a compass slower than the IMU is not one missing
+        if theta is None and not self.compass.heard:   # a compass slower than the IMU is not one missing
             self.skipped["imu_no_magnetometer"] += 1
         elif theta is not None and self._heading_unset:     # the magnetometer's first word: the heading is its
             self.ekf.set_heading(math.remainder(theta - self.ekf.x[BM], math.tau))
@@ -344,27 +340,15 @@ class Monitor:
         return events
 
     def _compass(self, t_us: int, heard: bool) -> list[Event]:
-        """An air vehicle whose IMU has spoken for NO_COMPASS_S without a magnetometer reading (none
-        fitted, or one that reads all zeros) has no heading reference: hovering, nothing observes its
-        heading, which then wanders with the gyro, and every acceleration integrated along a wrong
-        heading is a velocity error the GNSS contradicts (real copters without a compass: 7 to 33 false
-        alarms a flight). Its IMU is then not integrated, as a slow one is not: GNSS position and
-        velocity are tested against each other alone (said once). A ground vehicle keeps its IMU: its
-        sideways constraint makes the GNSS course witness the heading. A magnetometer that speaks
-        later (one that started late) gives the heading back: the filter starts again, inertial."""
-        if heard and self._no_compass:
-            self._no_compass = False
-            self._mag_heard = self.inertial = True
+        """An air vehicle without a compass is tested on its GNSS alone; one whose magnetometer speaks
+        later has its IMU integrated again (guard.core.aiding.compass decides)."""
+        verdict = self.compass.check(t_us, heard, self.ground, self.inertial)
+        if verdict is None:
+            return []
+        if verdict == "back":
+            self.inertial = True
             return self._reinitialise(t_us, "a magnetometer reading, after none: the IMU is integrated again")
-        self._mag_heard |= heard
-        if self._mag_heard:                         # the common case, every sample: nothing to decide
-            return []
-        if self._imu_t0 is None:
-            self._imu_t0 = t_us
-        if self.ground or self.inertial is not True or t_us - self._imu_t0 < NO_COMPASS_S * 1e6:
-            return []
         self.inertial = False
-        self._no_compass = True
         if self.ekf is not None:
             self.ekf.hold_heading()
             self._heading_unset = False
