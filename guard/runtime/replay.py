@@ -41,13 +41,15 @@ class Progress:
 
 
 def replay(path: str, cfg: Config | None = None, *, listeners=(), progress: bool = False,
-           imu: int | None = None, gnss: int | None = None) -> dict:
+           imu: int | None = None, gnss: int | None = None, inject=None) -> dict:
     """Run a log through the core; return the report (JSON-ready dict).
 
     `listeners` are sinks: they get on_sample(sample) and on_events(events) for every sample (a
     Trace, an McapLog). `imu`, `gnss`: which instance, in a log that holds several (None: the
-    primary). A log from which no GNSS fix could be read is a SourceError saying what was found:
-    never a clean-looking report of nothing.
+    primary). `inject`: a function of the log's sample stream that returns the stream the core is
+    to see (an attack written into a real flight, tools/real_logs.py --attack). A log from which no
+    GNSS fix could be read is a SourceError saying what was found: never a clean-looking report of
+    nothing.
     """
     cfg = cfg or Config()
     options = {k: v for k, v in (("imu", imu), ("gnss", gnss)) if v is not None}
@@ -60,7 +62,8 @@ def replay(path: str, cfg: Config | None = None, *, listeners=(), progress: bool
     pump = Pump(monitor, [report, *listeners])
     bar = Progress(source.size, progress)
     try:
-        pump.run(source.samples(), every=2048, tick=lambda: bar.update(source.position))
+        samples = source.samples()
+        pump.run(inject(samples) if inject else samples, every=2048, tick=lambda: bar.update(source.position))
         bar.update(source.size, force=True)
     finally:
         source.close()
