@@ -1,5 +1,6 @@
 """Every log in some folders replayed through guard: a line per log (its format, length, alarms by
-sensor, the largest statistic/threshold per sensor, what guard warned), then the totals. For logs
+sensor, the largest statistic/threshold per sensor, how far the estimate stood from the fixes, the
+receiver's own largest jump between fixes), then the totals. For logs
 of flights with no attack, every alarm is a false one or a fault in the vehicle: this is how guard is
 measured on real vehicles it was never tuned on.
 
@@ -24,6 +25,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import statistics
 import sys
 from collections import Counter
@@ -37,6 +39,7 @@ import tomllib                                       # noqa: E402
 
 from guard.config import parse, read                 # noqa: E402
 from guard.errors import GuardError                  # noqa: E402
+from guard.core.geo import LocalFrame                # noqa: E402
 from guard.model.samples import GnssFix              # noqa: E402
 from guard.runtime.replay import replay              # noqa: E402
 import pymap3d                                       # noqa: E402
@@ -63,14 +66,31 @@ RECEIVER = {"gnss_pos", "gnss_vel"}
 
 
 class Span:
-    """The times of a run's fixes."""
+    """The times of a run's fixes, and the receiver's own largest jump: how far a fix lies from where
+    the last one and the two velocities put it (|dp - (v + v') dt / 2|, fixes at most JUMP_DT_S apart)."""
+
+    JUMP_DT_S = 1.5
 
     def __init__(self):
         self.fixes: list[int] = []
+        self.frame = None
+        self.last = None
+        self.jump = 0.0
 
     def on_sample(self, s) -> None:
-        if isinstance(s, GnssFix) and s.fix_ok:
-            self.fixes.append(s.t_us)
+        if not (isinstance(s, GnssFix) and s.fix_ok):
+            return
+        self.fixes.append(s.t_us)
+        if s.vel_n_mps is None:
+            return
+        self.frame = self.frame or LocalFrame(s.lat_deg, s.lon_deg, s.alt_m)
+        e, n = self.frame.to_en(s.lat_deg, s.lon_deg)
+        if self.last and 0 < s.t_us - self.last[0] <= self.JUMP_DT_S * 1e6:
+            t, e0, n0, ve0, vn0 = self.last
+            dt = (s.t_us - t) / 1e6
+            self.jump = max(self.jump, math.hypot(e - e0 - 0.5 * (s.vel_e_mps + ve0) * dt,
+                                                  n - n0 - 0.5 * (s.vel_n_mps + vn0) * dt))
+        self.last = (s.t_us, e, n, s.vel_e_mps, s.vel_n_mps)
 
     def on_events(self, events) -> None:
         pass
@@ -112,7 +132,8 @@ def one(job: tuple[str, str | None, tuple[str, ...], tuple[str, ...]]) -> dict:
     alarms = Counter(str(a["sensor"]) for a in r["alarms"])
     out = {"log": path, "format": r["format"], "duration_s": r["duration_s"], "alarms": dict(alarms),
            "n_alarms": sum(alarms.values()), "peak_ratio": r["peak_ratio"], "estimate_to_fix_m": r["estimate_to_fix_m"],
-           "warnings": [n["text"] for n in r["notices"] if n["level"] == "warning"], "attacks": {}}
+           "warnings": [n["text"] for n in r["notices"] if n["level"] == "warning"], "attacks": {},
+           "receiver_jump_m": round(span.jump, 2)}
     for spec in attacks:
         kind, size = spec.split(":")
         runs = []
@@ -199,7 +220,8 @@ def main(argv=None) -> int:
             fixes += gap["fixes"]
             far_fixes += far * gap["fixes"]
             print(f"{name}: {r['format']}, {r['duration_s']:.0f} s; alarms {r['n_alarms']} ({by}); peaks {peaks}; "
-                  f"estimate from the fixes {gap['max']:.1f} m at most, over 5 m at {100 * far:.1f} %")
+                  f"estimate from the fixes {gap['max']:.1f} m at most, over 5 m at {100 * far:.1f} %; "
+                  f"the receiver's own largest jump {r['receiver_jump_m']:.2f} m")
     n = sum(1 for r in results if "error" not in r)
     quiet = sum(1 for r in results if r.get("n_alarms") == 0)
     by = ", ".join(f"{s} {k}" for s, k in sorted(total.items())) or "none"
