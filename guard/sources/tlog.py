@@ -6,19 +6,22 @@ guard uses; `guard.sources.mavlink.to_sample` converts them (units, once).
 
 from __future__ import annotations
 
+import dataclasses
 import datetime
 import mmap
 import os
 from collections.abc import Iterator
 
 from guard.errors import SourceError
-from guard.model.samples import ImuSample, Sample
+from guard.model.samples import GnssFix, ImuSample, Sample
 from guard.sources.base import LogSource
+from guard.sources.clock import motion_clock
 from guard.sources.mavlink import WANTED, mavlink, to_sample
 
 V1, V2 = 0xFE, 0xFD
 T_MIN_US, T_MAX_US = 946_684_800_000_000, 4_102_444_800_000_000    # a tlog prefix is unix time: 2000..2100
 DAY_US = 86_400_000_000
+GNSS_ONLY = {mavlink.MAVLINK_MSG_ID_GPS_RAW_INT}
 
 
 def looks_like_tlog(head: bytes) -> bool:
@@ -49,20 +52,37 @@ class TlogReader(LogSource):
                      if T_MIN_US <= first <= T_MAX_US else None)
         self.first_time_us: int | None = None
         self.last_time_us: int | None = None
+        self._clock: tuple[int, float] | None = None     # (t0, rate): the time stamps rescaled (guard.sources.clock)
         if peek:                # UTC from the start (a no-fix GNSS message has no time to learn it from)
             probe = TlogReader(path, system_id, peek=False)
             for n, _ in enumerate(probe.samples()):
                 if probe.utc_offset_us is not None or n >= self.PEEK_SAMPLES:
                     break
-            probe.close()
             self.utc_offset_us = probe.utc_offset_us
+            # GPS_RAW_INT carries no GNSS time: the clock is checked against the receiver's motion
+            self._clock = motion_clock(probe.track(), self.notes)
+            probe.close()
 
     def close(self) -> None:
         self._file.close()
 
+    def track(self) -> Iterator[tuple[int, float, float, float, float]]:
+        """(t_us, lat, lon, v_n, v_e) of every 3D fix with a velocity, GPS_RAW_INT alone decoded."""
+        if self.size == 0:
+            return
+        with mmap.mmap(self._file.fileno(), 0, access=mmap.ACCESS_READ) as buf:
+            for msg in self._frames(buf, GNSS_ONLY):
+                fix, _ = to_sample(msg)
+                if isinstance(fix, GnssFix) and fix.fix_ok and fix.vel_n_mps is not None:
+                    yield fix.t_us, fix.lat_deg, fix.lon_deg, fix.vel_n_mps, fix.vel_e_mps
+
     def samples(self) -> Iterator[Sample]:
+        clock = self._clock
         for msg in self:
             sample, reason = to_sample(msg)
+            if sample is not None and clock is not None and hasattr(sample, "t_us"):
+                t0, rate = clock        # on the receiver's time (guard.sources.clock)
+                sample = dataclasses.replace(sample, t_us=t0 + round((sample.t_us - t0) * rate))
             if sample is not None:
                 if self.utc_offset_us is None and isinstance(sample, ImuSample) and sample.t_us < T_MIN_US:
                     # the ground station's clock at the first IMU sample: UTC for the log (its latency aside)
@@ -76,9 +96,9 @@ class TlogReader(LogSource):
         if self.size == 0:
             return
         with mmap.mmap(self._file.fileno(), 0, access=mmap.ACCESS_READ) as buf:
-            yield from self._frames(buf)
+            yield from self._frames(buf, WANTED)
 
-    def _frames(self, buf) -> Iterator:
+    def _frames(self, buf, wanted) -> Iterator:
         size, pos, names = self.size, 0, mavlink.mavlink_map
         decode, count, skip = self.mav.decode, self.messages, self.skipped
         last_t = None
@@ -115,7 +135,7 @@ class TlogReader(LogSource):
             # a frame guard does not use is only counted, not decoded, when it is plausible: a known
             # type and the next frame starting right after it; anything else is checked by its CRC
             plausible = kind is not None and (end == size or end + 8 < size and buf[end + 8] in (V1, V2))
-            if msgid not in WANTED and plausible:
+            if msgid not in wanted and plausible:
                 count[kind.msgname] += 1
                 last_t = t
                 pos = end
@@ -128,7 +148,7 @@ class TlogReader(LogSource):
                 continue
             last_t = t
             count[msg.get_type()] += 1
-            if msgid not in WANTED:
+            if msgid not in wanted:
                 pos = end
                 continue
             if self.system_id and sysid != self.system_id:
