@@ -40,11 +40,13 @@ class DataFlashReader(LogSource):
     """Samples of an ArduPilot DataFlash log: GPS, IMU (+ the latest MAG), ATT and the vehicle type.
 
     `imu` and `gnss` pick an instance (default 0, the primary); `system_id` is accepted and ignored
-    (a DataFlash log holds one vehicle). Opening surveys the log: rates, other instances, the date,
+    (a DataFlash log holds one vehicle); `as_logged` keeps the autopilot's time stamps even where its
+    clock parts from the GNSS time (survey.clock_rate). Opening surveys the log: rates, other instances, the date,
     the vehicle and the autopilot's own verdicts; `samples()` then decodes the streams in file order.
     """
 
-    def __init__(self, path: str, system_id: int = 0, imu: int | None = None, gnss: int | None = None):
+    def __init__(self, path: str, system_id: int = 0, imu: int | None = None, gnss: int | None = None,
+                 as_logged: bool = False):
         super().__init__()
         self.path = path
         self._index = open_index(path)
@@ -53,7 +55,7 @@ class DataFlashReader(LogSource):
         self.ground: bool | None = None         # the vehicle class, from the firmware string
         self._mag_now: tuple | None = None      # the latest MAG reading: (t_us, x, y, z gauss)
         try:
-            self._survey(imu, gnss)
+            self._survey(imu, gnss, as_logged)
         except SourceError:
             self.close()
             raise
@@ -64,7 +66,7 @@ class DataFlashReader(LogSource):
     def close(self) -> None:
         self._index.close()
 
-    def _survey(self, imu: int | None, gnss: int | None) -> None:
+    def _survey(self, imu: int | None, gnss: int | None, as_logged: bool = False) -> None:
         idx, lg = self._index, self._log
         self.messages.update({idx.formats[t].name: len(offs) for t, offs in enumerate(idx.offsets)
                               if offs and t in idx.formats})
@@ -76,7 +78,8 @@ class DataFlashReader(LogSource):
         self._att = ("ATT", lg.offsets("ATT")) if lg.offsets("ATT") else None
         self._accuracy = survey.accuracies(lg, self._gnss, self._gnss_n)
         self.date, self.utc_offset_us = survey.gps_utc(lg, self._gnss)
-        self._clock = survey.clock_rate(lg, self._gnss, self.notes)     # (t0, rate) or None: as logged
+        # (t0, rate) or None: as logged (`as_logged`: the time stamps as the autopilot wrote them, always)
+        self._clock = None if as_logged else survey.clock_rate(lg, self._gnss, self.notes)
         used = [(f"IMU {self._imu_n}", self._imu), (f"GPS {self._gnss_n}", self._gnss), ("MAG", self._mag),
                 ("ATT", self._att)]
         rates = [f"{label}: {survey.rate(lg, s)} Hz" for label, s in used if s is not None]
