@@ -43,8 +43,9 @@ from pymavlink import mavutil                                   # noqa: E402
 from pymavlink.dialects.v20 import ardupilotmega as mavlink     # noqa: E402
 
 from guard.errors import ConfigError, SourceError   # noqa: E402
+from guard.model.samples import ImuSample            # noqa: E402
 from guard.sources import framing                   # noqa: E402
-from guard.sources.mavlink import to_sample         # noqa: E402
+from guard.sources.mavlink import CompassRepeats, to_sample         # noqa: E402
 
 log = logging.getLogger(__name__)
 
@@ -149,6 +150,7 @@ class MavlinkLink:
         self.system_id = cfg.system_id
         self.skipped: Counter[str] = Counter()
         self.skip = SkipLog(self.skipped)
+        self.repeats = CompassRepeats()             # a slower compass's reading, once
         refuse_taken_port(url)
         try:
             self.conn = mavutil.mavlink_connection(url, source_system=cfg.system_id or 1,
@@ -307,7 +309,7 @@ class MavlinkLink:
         sample, reason = to_sample(msg)
         if reason:
             self.skip(reason)
-        return sample
+        return self.repeats(sample) if isinstance(sample, ImuSample) else sample
 
     def send(self, fn) -> None:
         """Call fn(mav) to send a message; a link without a peer yet or down is counted, not fatal."""

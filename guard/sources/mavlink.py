@@ -11,8 +11,10 @@ Read from a live link (`guard.sources.link`) and from tlog files (`guard.sources
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
+import statistics
 
 os.environ.setdefault("MAVLINK20", "1")     # before pymavlink is imported, or frames are MAVLink 1
 
@@ -66,3 +68,39 @@ def to_sample(msg) -> tuple[Sample | None, str | None]:
             return None, None
         return VehicleType(msg.type == mavlink.MAV_TYPE_GROUND_ROVER), None
     return None, None
+
+
+class CompassRepeats:
+    """RAW_IMU carries whatever magnetometer reading the autopilot holds: a compass slower than the
+    stream (10 Hz in a 50 Hz RAW_IMU) sends each reading several times, and each would be a new
+    measurement to the filter and its CUSUM, its error counted as often (an Erle copter's flights
+    written as tlogs: 26 magnetometer alarms, against 13 from the same DataFlash logs, whose reader
+    gives each reading once). The compass's own period is learnt from the stream, the median time
+    between changes of its value over its first PERIOD_CHANGES changes; after that, a value equal to
+    the last one taken, less than SAME_READING of that period after it, is the same reading, and the
+    sample goes on without it. A noiseless compass (ArduPilot's SITL) reading the same value a period
+    later is a new reading, and taken; one as fast as the stream never repeats, and nothing changes."""
+
+    PERIOD_CHANGES = 20
+    SAME_READING = 0.9
+
+    def __init__(self):
+        self.period_us: float | None = None
+        self._changes: list[int] = []
+        self._last: tuple[int, tuple] | None = None    # (time, value) of the last reading taken
+
+    def __call__(self, s: ImuSample) -> ImuSample:
+        if s.mag_x_gauss is None:
+            return s
+        value, last = (s.mag_x_gauss, s.mag_y_gauss, s.mag_z_gauss), self._last
+        if self.period_us is None:          # learning the period: every sample as it comes
+            if last is None or value != last[1]:
+                self._changes.append(s.t_us)
+                self._last = (s.t_us, value)
+                if len(self._changes) > self.PERIOD_CHANGES:
+                    self.period_us = float(statistics.median(b - a for a, b in zip(self._changes, self._changes[1:])))
+            return s
+        if value == last[1] and 0 <= s.t_us - last[0] < self.SAME_READING * self.period_us:
+            return dataclasses.replace(s, mag_x_gauss=None, mag_y_gauss=None, mag_z_gauss=None)
+        self._last = (s.t_us, value)
+        return s

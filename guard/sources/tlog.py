@@ -16,7 +16,7 @@ from guard.errors import SourceError
 from guard.model.samples import GnssFix, ImuSample, Sample
 from guard.sources.base import LogSource
 from guard.sources.clock import motion_clock
-from guard.sources.mavlink import WANTED, mavlink, to_sample
+from guard.sources.mavlink import WANTED, CompassRepeats, mavlink, to_sample
 
 V1, V2 = 0xFE, 0xFD
 T_MIN_US, T_MAX_US = 946_684_800_000_000, 4_102_444_800_000_000    # a tlog prefix is unix time: 2000..2100
@@ -77,9 +77,11 @@ class TlogReader(LogSource):
                     yield fix.t_us, fix.lat_deg, fix.lon_deg, fix.vel_n_mps, fix.vel_e_mps
 
     def samples(self) -> Iterator[Sample]:
-        clock = self._clock
+        clock, repeats = self._clock, CompassRepeats()
         for msg in self:
             sample, reason = to_sample(msg)
+            if isinstance(sample, ImuSample):
+                sample = repeats(sample)        # a slower compass's reading, once
             if sample is not None and clock is not None and hasattr(sample, "t_us"):
                 t0, rate = clock        # on the receiver's time (guard.sources.clock)
                 sample = dataclasses.replace(sample, t_us=t0 + round((sample.t_us - t0) * rate))

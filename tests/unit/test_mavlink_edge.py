@@ -253,3 +253,34 @@ def test_sim_imu_at_rest_reads_minus_one_g():
     msg = sim_wire(lambda enc: enc.raw_imu(0, level))
     assert (msg.xacc, msg.yacc, msg.zacc) == (0, 0, -1000)
     assert to_sample(msg)[0].acc_z_mps2 == pytest.approx(-G, abs=1e-12)
+
+
+def _imu(t_us, mag):
+    from guard.model.samples import ImuSample
+    return ImuSample(t_us, 0.0, 0.0, -9.8, 0.0, 0.0, 0.0, *mag)
+
+
+def test_a_slower_compasss_reading_sent_again_and_again_counts_once():
+    """RAW_IMU at 50 Hz carrying a 10 Hz compass: each reading five times. Once the compass's period is
+    learnt, the four repeats go on without it; a reading that changes is taken at once; a noiseless
+    compass reading the same value a period later (ArduPilot's SITL) is a new reading; a compass as
+    fast as the stream loses nothing; a reboot's time going back takes the next reading."""
+    from guard.sources.mavlink import CompassRepeats
+    rng = np.random.default_rng(0)
+    repeats, kept = CompassRepeats(), []
+    value = None
+    for k in range(500):
+        if k % 5 == 0:
+            value = tuple(float(v) for v in rng.normal(0.2, 0.01, 3))
+        kept.append(repeats(_imu(k * 20_000, value)).mag_x_gauss is not None)
+    assert repeats.period_us == 100_000
+    after = kept[200:]
+    assert sum(after) == len(after) // 5 and all(after[i] for i in range(0, len(after), 5)), after[:12]
+    # the same value a period later: a new reading (a noiseless compass)
+    assert repeats(_imu(500 * 20_000, value)).mag_x_gauss is not None
+    assert repeats(_imu(501 * 20_000, value)).mag_x_gauss is None
+    assert repeats(_imu(505 * 20_000, value)).mag_x_gauss is not None
+    assert repeats(_imu(1_000, value)).mag_x_gauss is not None                 # time went back: a reboot
+    fast = CompassRepeats()
+    got = [fast(_imu(k * 20_000, tuple(float(v) for v in rng.normal(0.2, 0.01, 3)))).mag_x_gauss for k in range(300)]
+    assert None not in got and fast.period_us == 20_000
