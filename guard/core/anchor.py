@@ -44,8 +44,12 @@ class Learnt:
     var_k_s: float
 
     @classmethod
-    def of(cls, ekf: NavEKF) -> Learnt:
+    def of(cls, ekf: NavEKF) -> Learnt | None:
+        """None where the filter learnt nothing: on GNSS alone (NavEKF.hold_heading) both are held at
+        nothing, and a new filter had better learn them afresh than start certain of nothing."""
         x, P = ekf.x, ekf.P
+        if P[BM, BM] <= 0.0 and P[KS, KS] <= 0.0:
+            return None
         return cls(float(x[BM]), float(P[BM, BM]), float(x[KS]), float(P[KS, KS]))
 
     def restore(self, ekf: NavEKF) -> None:

@@ -129,7 +129,9 @@ class Judge:
         """An exclusion has a bounded life: once the other sensors cannot hold the estimate to within
         max_coast_m (1 sigma), the GNSS can be neither confirmed nor refuted; the estimate is
         re-anchored on it, and its alarm stands (latched, no Cleared). What a patient attacker gains:
-        an offset that grew slowly enough to be excluded, held out for that long, is then taken."""
+        an offset that grew slowly enough to be excluded, held out for that long, is then taken.
+        Asked at each fix while the GNSS is out, and at once after an alarm's rewind (Monitor.finish),
+        whose estimate may already be beyond holding (GNSS alone: nothing else held it)."""
         sigma = math.sqrt(ekf.P[X, X] + ekf.P[Y, Y])
         if sigma <= max_coast_m:
             return []

@@ -130,6 +130,19 @@ def test_a_reboot_keeps_what_was_learnt_of_the_vehicle(offset_deg):
     assert all(abs(math.degrees(math.remainder(e.yaw_rad - 0.4, math.tau))) < 1.0 for e in after)
 
 
+def test_a_reboot_on_gnss_alone_claims_nothing_learnt():
+    """An air vehicle without a compass is tested on its GNSS alone: its filter learns neither offset
+    nor slip (both held at nothing). A reboot then says nothing of what was learnt, and the new filter
+    does not start certain of nothing."""
+    first = drive(60.0, yaw=0.4, seed=18, mag=lambda t: False)
+    again = drive(30.0, yaw=0.4, seed=19, mag=lambda t: False)         # the clock from 1 s again
+    mon, events = run(first + again, AIR)
+    texts = [n.text for n in of(events, Notice)]
+    assert any(t.startswith("time jumped") for t in texts), texts
+    assert not [t for t in texts if "kept what it learnt" in t], texts
+    assert mon.ekf.P[BM, BM] == 0.0 and mon.inertial is False
+
+
 def test_a_diverged_filter_keeps_nothing():
     """Re-initialised because it diverged, the filter starts from the config's offset, not the one it
     had: what it learnt may be what went wrong."""
