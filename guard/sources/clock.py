@@ -16,6 +16,8 @@ against 50 m, that is 2 %; between consecutive fixes it is everything (hovering 
 off by more than MOTION_TOLERANCE and by three standard errors, with a standard error under
 MAX_SE; a hovering copter never covers 50 m in 10 s and is left as logged. On the real flights that
 do (two Erle planes): 1.079 and 1.089, as their DataFlash logs' GNSS time says (1.079 and 1.087).
+On the simulator's clean 10-minute drives, whose clock keeps time (6 seeds of the defaults and 6
+vehicles of the second family): 0.996 to 1.001, a quarter of the tolerance at most.
 """
 
 from __future__ import annotations
