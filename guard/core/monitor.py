@@ -306,7 +306,7 @@ class Monitor:
         self.imu_aid.noise.add(s.t_us, ax, ay, rate, None if mag is None else heading(*mag, self.declination),
                                learn=self.judge.calm)
         if self.inertial is False:
-            self.skipped["imu_too_slow"] += 1
+            self.skipped["imu_no_compass" if self.compass.absent else "imu_too_slow"] += 1
             return events
         if self.ekf is None:
             self.skipped["imu_before_first_fix"] += 1

@@ -210,6 +210,7 @@ def test_an_air_vehicle_without_a_compass_is_tested_on_its_gnss_alone_and_says_s
     mon, events = run(samples, AIR)
     said = [n for n in of(events, Notice) if "no magnetometer reading" in n.text]
     assert len(said) == 1 and said[0].level == "warning" and mon.inertial is False
+    assert mon.skipped["imu_no_compass"] > 0 and "imu_too_slow" not in mon.skipped, mon.skipped   # said as it is
     alarm, *_ = of(events, Alarm)
     assert (alarm.sensor, alarm.channel) == ("gnss_pos", "north") and alarm.t_us - (T0_US + 90_000_000) < 250_000
 
