@@ -10,6 +10,7 @@ import dataclasses
 import datetime
 import mmap
 import os
+import statistics
 from collections.abc import Iterator
 
 from guard.errors import SourceError
@@ -77,14 +78,17 @@ class TlogReader(LogSource):
                     yield fix.t_us, fix.lat_deg, fix.lon_deg, fix.vel_n_mps, fix.vel_e_mps
 
     def samples(self) -> Iterator[Sample]:
-        clock, repeats = self._clock, CompassRepeats()
+        clock, repeats, fixes = self._clock, CompassRepeats(), UnixFixes(self.notes)
         for msg in self:
             sample, reason = to_sample(msg)
             if isinstance(sample, ImuSample):
                 sample = repeats(sample)        # a slower compass's reading, once
+                fixes.imu(sample.t_us, self.last_time_us)
+            elif isinstance(sample, GnssFix):
+                sample = fixes.fix(sample, self.last_time_us)     # a fix in UNIX time, on the boot clock
             if sample is not None and clock is not None and hasattr(sample, "t_us"):
-                t0, rate = clock        # on the receiver's time (guard.sources.clock)
-                sample = dataclasses.replace(sample, t_us=t0 + round((sample.t_us - t0) * rate))
+                # on the receiver's time (guard.sources.clock), about the boot: every stream alike
+                sample = dataclasses.replace(sample, t_us=round(sample.t_us * clock[1]))
             if sample is not None:
                 if self.utc_offset_us is None and isinstance(sample, ImuSample) and sample.t_us < T_MIN_US:
                     # the ground station's clock at the first IMU sample: UTC for the log (its latency aside)
@@ -163,6 +167,40 @@ class TlogReader(LogSource):
         else:
             if pos < size:
                 skip["truncated"] += 1
+
+
+class UnixFixes:
+    """GPS_RAW_INT.time_usec may be UNIX time: MAVLink lets the sender choose, and the receiver tells
+    by the magnitude. Beside a RAW_IMU counting from boot, the fixes are then put on the boot clock,
+    by the offset between the two that their arrival shows: the median, over the first OFFSET_FIXES
+    fixes, of a fix's UNIX time less the boot time the ground station's clock gives it (the latest
+    IMU sample's, plus the time between their arrivals: the link's latency jitter, milliseconds,
+    against a whole flight). Said once. Without a boot-time IMU stream there is nothing to join, and
+    the fixes stay as they came."""
+
+    OFFSET_FIXES = 10
+
+    def __init__(self, notes: list[str]):
+        self.notes = notes
+        self._imu: tuple[int, int] | None = None        # (boot time, arrival) of the latest IMU sample
+        self._seen: list[int] = []
+        self.offset_us: int | None = None
+
+    def imu(self, t_us: int, arrival_us: int | None) -> None:
+        if arrival_us is not None:
+            self._imu = (t_us, arrival_us)
+
+    def fix(self, fix: GnssFix, arrival_us: int | None) -> GnssFix:
+        if not fix.fix_ok or fix.t_us < T_MIN_US or self._imu is None or self._imu[0] >= T_MIN_US \
+                or arrival_us is None:
+            return fix
+        if len(self._seen) < self.OFFSET_FIXES:
+            self._seen.append(fix.t_us - (self._imu[0] + arrival_us - self._imu[1]))
+            if self.offset_us is None:
+                self.notes.append("GPS_RAW_INT is stamped in UNIX time and RAW_IMU from boot: the fixes are put "
+                                  "on the boot clock, by the offset their arrival shows")
+            self.offset_us = int(statistics.median(self._seen))
+        return dataclasses.replace(fix, t_us=fix.t_us - self.offset_us)
 
 
 def tlog_samples(reader: TlogReader) -> Iterator[Sample]:

@@ -153,3 +153,28 @@ def test_a_tlog_stamped_by_a_slow_clock_is_put_on_its_receivers_time(shared, tmp
     assert len(said) == 1 and " slow against its receiver's own motion" in said[0], report["notes"]
     assert abs(float(said[0].rsplit(" ", 1)[1]) - 1.08) < 0.005, said
     assert report["alarms"] == [], report["alarms"][:3]
+
+
+def test_fixes_stamped_in_unix_time_beside_an_imu_from_boot_are_joined(shared, tmp_path):
+    """MAVLink lets GPS_RAW_INT carry UNIX time while RAW_IMU counts from boot. ArduPilot's SITL
+    rover with its fixes so stamped: said once, the fixes put on the boot clock by their arrival,
+    nothing dropped as off the time base, and the flight replays as it does stamped from boot."""
+    src = need(shared / "data" / "ardupilot-sitl" / "rover_clean_turns.tlog")
+    shift = 1_700_000_000_000_000
+    conn, mav, dst = mavutil.mavlink_connection(src), mavlink.MAVLink(None), str(tmp_path / "unix.tlog")
+    with open(dst, "wb") as out:
+        while (m := conn.recv_match()) is not None:
+            if m.get_type() == "BAD_DATA":
+                continue
+            buf = m.get_msgbuf()
+            if m.get_type() == "GPS_RAW_INT" and m.time_usec:
+                m.time_usec += shift
+                mav.seq, mav.srcSystem, mav.srcComponent = m.get_seq(), m.get_srcSystem(), m.get_srcComponent()
+                buf = m.pack(mav)
+            out.write(int(m._timestamp * 1e6).to_bytes(8, "big") + bytes(buf))
+    base, joined = replay(src), replay(dst)
+    said = [n for n in joined["notes"] if "UNIX time" in n]
+    assert len(said) == 1, joined["notes"]
+    assert "time_off_base" not in joined["skipped"], joined["skipped"]
+    assert joined["gnss_samples"] == base["gnss_samples"] and joined["alarms"] == base["alarms"] == []
+    assert joined["estimate_to_fix_m"]["max"] < 1.0, joined["estimate_to_fix_m"]
