@@ -43,9 +43,9 @@ from pymavlink import mavutil                                   # noqa: E402
 from pymavlink.dialects.v20 import ardupilotmega as mavlink     # noqa: E402
 
 from guard.errors import ConfigError, SourceError   # noqa: E402
-from guard.model.samples import ImuSample            # noqa: E402
+from guard.model.samples import GnssFix, ImuSample   # noqa: E402
 from guard.sources import framing                   # noqa: E402
-from guard.sources.mavlink import CompassRepeats, to_sample         # noqa: E402
+from guard.sources.mavlink import CompassRepeats, UnixFixes, to_sample   # noqa: E402
 
 log = logging.getLogger(__name__)
 
@@ -151,6 +151,7 @@ class MavlinkLink:
         self.skipped: Counter[str] = Counter()
         self.skip = SkipLog(self.skipped)
         self.repeats = CompassRepeats()             # a slower compass's reading, once
+        self.unix_fixes = UnixFixes(log.warning)    # fixes stamped in UNIX time, on the boot clock
         refuse_taken_port(url)
         try:
             self.conn = mavutil.mavlink_connection(url, source_system=cfg.system_id or 1,
@@ -309,7 +310,13 @@ class MavlinkLink:
         sample, reason = to_sample(msg)
         if reason:
             self.skip(reason)
-        return self.repeats(sample) if isinstance(sample, ImuSample) else sample
+        arrival = int(time.monotonic() * 1e6)
+        if isinstance(sample, ImuSample):
+            self.unix_fixes.imu(sample.t_us, arrival)
+            return self.repeats(sample)
+        if isinstance(sample, GnssFix):
+            return self.unix_fixes.fix(sample, arrival)
+        return sample
 
     def send(self, fn) -> None:
         """Call fn(mav) to send a message; a link without a peer yet or down is counted, not fatal."""

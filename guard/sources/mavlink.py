@@ -30,6 +30,7 @@ WANTED = {mavlink.MAVLINK_MSG_ID_GPS_RAW_INT, mavlink.MAVLINK_MSG_ID_RAW_IMU, ma
 
 
 T_MAX_US = 4_102_444_800_000_000     # 2100-01-01 in unix microseconds: no boot or unix time goes past it
+UNIX_MIN_US = 946_684_800_000_000    # 2000-01-01 in unix microseconds: a larger time_usec is UNIX time, not boot
 ROLL_MAX_RAD = math.pi + 1e-6        # roll is in [-pi, pi]; float32(pi) is 8.7e-8 above pi
 
 
@@ -104,3 +105,37 @@ class CompassRepeats:
             return dataclasses.replace(s, mag_x_gauss=None, mag_y_gauss=None, mag_z_gauss=None)
         self._last = (s.t_us, value)
         return s
+
+
+class UnixFixes:
+    """GPS_RAW_INT.time_usec may be UNIX time: MAVLink lets the sender choose, and the receiver tells
+    by the magnitude. Beside a RAW_IMU counting from boot, the fixes are then put on the boot clock,
+    by the offset between the two that their arrival shows: the median, over the first OFFSET_FIXES
+    fixes, of a fix's UNIX time less the boot time its arrival gives it (the latest IMU sample's, plus
+    the time between their arrivals, by a tlog's prefix or a live link's clock: the link's latency
+    jitter, milliseconds, against a whole flight). Said once. Without a boot-time IMU stream there is
+    nothing to join, and the fixes stay as they came."""
+
+    OFFSET_FIXES = 10
+
+    def __init__(self, say):
+        self.say = say                                  # how it is said: a log's notes, a link's log
+        self._imu: tuple[int, int] | None = None        # (boot time, arrival) of the latest IMU sample
+        self._seen: list[int] = []
+        self.offset_us: int | None = None
+
+    def imu(self, t_us: int, arrival_us: int | None) -> None:
+        if arrival_us is not None:
+            self._imu = (t_us, arrival_us)
+
+    def fix(self, fix: GnssFix, arrival_us: int | None) -> GnssFix:
+        if not fix.fix_ok or fix.t_us < UNIX_MIN_US or self._imu is None or self._imu[0] >= UNIX_MIN_US \
+                or arrival_us is None:
+            return fix
+        if len(self._seen) < self.OFFSET_FIXES:
+            self._seen.append(fix.t_us - (self._imu[0] + arrival_us - self._imu[1]))
+            if self.offset_us is None:
+                self.say("GPS_RAW_INT is stamped in UNIX time and RAW_IMU from boot: the fixes are put "
+                                  "on the boot clock, by the offset their arrival shows")
+            self.offset_us = int(statistics.median(self._seen))
+        return dataclasses.replace(fix, t_us=fix.t_us - self.offset_us)

@@ -10,14 +10,13 @@ import dataclasses
 import datetime
 import mmap
 import os
-import statistics
 from collections.abc import Iterator
 
 from guard.errors import SourceError
 from guard.model.samples import GnssFix, ImuSample, Sample
 from guard.sources.base import LogSource
 from guard.sources.clock import motion_clock
-from guard.sources.mavlink import WANTED, CompassRepeats, mavlink, to_sample
+from guard.sources.mavlink import WANTED, CompassRepeats, UnixFixes, mavlink, to_sample
 
 V1, V2 = 0xFE, 0xFD
 T_MIN_US, T_MAX_US = 946_684_800_000_000, 4_102_444_800_000_000    # a tlog prefix is unix time: 2000..2100
@@ -78,7 +77,7 @@ class TlogReader(LogSource):
                     yield fix.t_us, fix.lat_deg, fix.lon_deg, fix.vel_n_mps, fix.vel_e_mps
 
     def samples(self) -> Iterator[Sample]:
-        clock, repeats, fixes = self._clock, CompassRepeats(), UnixFixes(self.notes)
+        clock, repeats, fixes = self._clock, CompassRepeats(), UnixFixes(self.notes.append)
         for msg in self:
             sample, reason = to_sample(msg)
             if isinstance(sample, ImuSample):
@@ -167,40 +166,6 @@ class TlogReader(LogSource):
         else:
             if pos < size:
                 skip["truncated"] += 1
-
-
-class UnixFixes:
-    """GPS_RAW_INT.time_usec may be UNIX time: MAVLink lets the sender choose, and the receiver tells
-    by the magnitude. Beside a RAW_IMU counting from boot, the fixes are then put on the boot clock,
-    by the offset between the two that their arrival shows: the median, over the first OFFSET_FIXES
-    fixes, of a fix's UNIX time less the boot time the ground station's clock gives it (the latest
-    IMU sample's, plus the time between their arrivals: the link's latency jitter, milliseconds,
-    against a whole flight). Said once. Without a boot-time IMU stream there is nothing to join, and
-    the fixes stay as they came."""
-
-    OFFSET_FIXES = 10
-
-    def __init__(self, notes: list[str]):
-        self.notes = notes
-        self._imu: tuple[int, int] | None = None        # (boot time, arrival) of the latest IMU sample
-        self._seen: list[int] = []
-        self.offset_us: int | None = None
-
-    def imu(self, t_us: int, arrival_us: int | None) -> None:
-        if arrival_us is not None:
-            self._imu = (t_us, arrival_us)
-
-    def fix(self, fix: GnssFix, arrival_us: int | None) -> GnssFix:
-        if not fix.fix_ok or fix.t_us < T_MIN_US or self._imu is None or self._imu[0] >= T_MIN_US \
-                or arrival_us is None:
-            return fix
-        if len(self._seen) < self.OFFSET_FIXES:
-            self._seen.append(fix.t_us - (self._imu[0] + arrival_us - self._imu[1]))
-            if self.offset_us is None:
-                self.notes.append("GPS_RAW_INT is stamped in UNIX time and RAW_IMU from boot: the fixes are put "
-                                  "on the boot clock, by the offset their arrival shows")
-            self.offset_us = int(statistics.median(self._seen))
-        return dataclasses.replace(fix, t_us=fix.t_us - self.offset_us)
 
 
 def tlog_samples(reader: TlogReader) -> Iterator[Sample]:
