@@ -15,7 +15,7 @@ from collections.abc import Iterator
 from guard.errors import SourceError
 from guard.model.samples import GnssFix, ImuSample, Sample
 from guard.sources.base import LogSource
-from guard.sources.clock import motion_clock
+from guard.sources.clock import epoch_clock, motion_clock
 from guard.sources.mavlink import WANTED, CompassRepeats, UnixFixes, mavlink, to_sample
 
 V1, V2 = 0xFE, 0xFD
@@ -59,21 +59,23 @@ class TlogReader(LogSource):
                 if probe.utc_offset_us is not None or n >= self.PEEK_SAMPLES:
                     break
             self.utc_offset_us = probe.utc_offset_us
-            # GPS_RAW_INT carries no GNSS time: the clock is checked against the receiver's motion
-            self._clock = motion_clock(probe.track(), self.notes)
+            # GPS_RAW_INT carries no GNSS time: the clock is checked against the receiver's motion,
+            # or where the vehicle did not go far enough for that, against its epochs
+            track = list(probe.track())
+            self._clock = motion_clock(track, self.notes) or epoch_clock([f[0] for f in track], self.notes)
             probe.close()
 
     def close(self) -> None:
         self._file.close()
 
-    def track(self) -> Iterator[tuple[int, float, float, float, float]]:
-        """(t_us, lat, lon, v_n, v_e) of every 3D fix with a velocity, GPS_RAW_INT alone decoded."""
+    def track(self) -> Iterator[tuple[int, float, float, float | None, float | None]]:
+        """(t_us, lat, lon, v_n, v_e) of every 3D fix (v None: none sent), GPS_RAW_INT alone decoded."""
         if self.size == 0:
             return
         with mmap.mmap(self._file.fileno(), 0, access=mmap.ACCESS_READ) as buf:
             for msg in self._frames(buf, GNSS_ONLY):
                 fix, _ = to_sample(msg)
-                if isinstance(fix, GnssFix) and fix.fix_ok and fix.vel_n_mps is not None:
+                if isinstance(fix, GnssFix) and fix.fix_ok:
                     yield fix.t_us, fix.lat_deg, fix.lon_deg, fix.vel_n_mps, fix.vel_e_mps
 
     def samples(self) -> Iterator[Sample]:

@@ -7,7 +7,7 @@ import numpy as np
 import pymap3d
 import pytest
 
-from guard.sources.clock import motion_clock, motion_rate
+from guard.sources.clock import epoch_clock, epoch_rate, motion_clock, motion_rate
 
 LAT0, LON0 = 43.0, -2.6
 
@@ -52,3 +52,37 @@ def test_a_track_whose_fixes_jump_is_not_a_clock():
               for k, (t, lat, lon, vn, ve) in enumerate(fixes)]
     notes = []
     assert motion_clock(jumped, notes) is None and notes == []
+
+
+def epochs(n, rate, period_ms=200.0, loop_ms=20.0, missed=0.02, seed=0):
+    """Fix times of a receiver at period_ms on GPS time, read by an autopilot loop of loop_ms whose
+    clock runs `rate` times too slow: each fix stamped at the first loop tick after it; a few missed."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(n):
+        if rng.random() < missed:
+            continue
+        t_true = k * period_ms / 1e3
+        t_log_ms = t_true * 1e3 / rate
+        out.append(int(math.ceil(t_log_ms / loop_ms) * loop_ms * 1000))
+    return out
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_a_slow_clock_is_found_by_its_receivers_epochs_where_the_vehicle_hovers(seed):
+    """The Erle autopilot's GPS rows came 180 or 200 ms apart on its 20 ms loop, 184.6 ms on average:
+    a 5 Hz receiver read by a clock 8.3 % slow."""
+    notes = []
+    t0, rate = epoch_clock(epochs(1500, 1.083, seed=seed), notes)
+    assert rate == pytest.approx(1.083, abs=0.003) and "200 ms receiver" in notes[0], notes
+
+
+@pytest.mark.parametrize("period_ms", [100.0, 200.0, 1000.0])
+def test_a_receiver_read_by_a_good_clock_or_a_telemetry_stream_is_left_as_logged(period_ms):
+    notes = []
+    assert epoch_clock(epochs(1500, 1.0, period_ms=period_ms), notes) is None and notes == []
+    rng = np.random.default_rng(5)              # a 1 Hz telemetry stream sampling a 5 Hz receiver
+    scattered = np.cumsum(rng.choice([200_000, 400_000, 600_000, 800_000, 1_000_000], 1500))
+    assert epoch_rate(scattered.tolist()) is None
+    assert epoch_rate(epochs(100, 1.083)) is None                       # too few to judge
+    assert epoch_clock(epochs(1500, 1.0, period_ms=1000.0 / 9), notes) is None     # a 9 Hz receiver is one
