@@ -1,4 +1,11 @@
-"""A log's clock, checked against its receiver's own motion, where the log carries no GNSS time.
+"""A log's clock, checked against its receiver's: by the GNSS time its fixes carry, or where a log
+carries none (a tlog), by the receiver's own motion and epochs.
+
+An autopilot's clock keeps time to 50 ppm; some do not. `gnss_time_clock` fits the log's boot time
+against the GNSS time every fix carries (a DataFlash GPS row's week and milliseconds, a ULog's
+time_utc_usec) as a line over the whole log: parted by more than CLOCK_TOLERANCE in a straight line,
+the time stamps are put on the receiver's time and that is said; a GNSS time that jumps (a receiver
+restarting, or a spoofer moving it) is not a line, and corrects nothing.
 
 A tlog's GPS_RAW_INT has no GPS week or time of week: only the autopilot's boot clock stamps it. An
 autopilot whose clock does not keep time (the Erle PXF's Linux autopilot of 2014 ran 8 to 10 %
@@ -43,7 +50,11 @@ MIN_PATH_M = 50.0       # m the vehicle covers in a stretch, for it to count
 MIN_WINDOWS = 5
 MOTION_TOLERANCE = 0.02     # a rate within 2 % of 1 is left alone (a receiver's lag and wander)
 MAX_SE = 0.01
-CLOCK_LIMIT = 0.2           # beyond 20 % the time stamps are not a clock at all
+CLOCK_LIMIT = 0.2           # beyond 20 % the time stamps are not a clock at all: said, not corrected
+# against the GNSS time (gnss_time_clock)
+CLOCK_TOLERANCE = 0.002     # a crystal is within 50 ppm: 0.2 % apart is a clock that is not keeping time
+CLOCK_MIN_S = 30.0          # GNSS time over at least this long before the rate is judged
+CLOCK_JITTER_S = 0.05       # the fit's rms residual: more, and the two clocks do not run in a line
 # the receiver's epochs (guard.sources.clock.epoch_rate)
 EPOCHS_MS = (100.0, 125.0, 200.0, 250.0, 500.0, 1000.0)    # the navigation rates autopilots set: 10 to 1 Hz
 MIN_INTERVALS = 200
@@ -140,3 +151,28 @@ def epoch_clock(times, notes: list[str]) -> tuple[int, float] | None:
                  f"receiver's epochs ({n} fixes {standard / rate:.1f} ms apart by it, a {standard:g} ms "
                  f"receiver's): every time stamp scaled by {rate:.4f}")
     return 0, rate
+
+
+def gnss_time_clock(boot: list[float], gps: list[float], notes: list[str]) -> tuple[int, float] | None:
+    """(t0, rate) from the boot times (s) of the fixes and the GNSS times (s) they carry: t0 the first
+    fix's boot time (us); None: as logged. What it finds is said in `notes`."""
+    if len(boot) < 20 or boot[-1] - boot[0] < CLOCK_MIN_S:
+        return None
+    b0, g0 = boot[0], gps[0]
+    x = [b - b0 for b in boot]
+    y = [g - g0 for g in gps]
+    mx, my = statistics.fmean(x), statistics.fmean(y)
+    sxx = sum((a - mx) ** 2 for a in x)
+    if sxx <= 0.0:
+        return None
+    rate = sum((a - mx) * (b - my) for a, b in zip(x, y)) / sxx
+    rms = math.sqrt(statistics.fmean([(b - my - rate * (a - mx)) ** 2 for a, b in zip(x, y)]))
+    if abs(rate - 1.0) <= CLOCK_TOLERANCE:
+        return None
+    said = f"the autopilot's clock ran {abs(rate - 1.0) * 100:.1f} % {'slow' if rate > 1.0 else 'fast'} against the GNSS receiver's"
+    if rms > CLOCK_JITTER_S or abs(rate - 1.0) > CLOCK_LIMIT:
+        notes.append(f"{said}, not in a straight line (rms {rms:.2f} s) or beyond {CLOCK_LIMIT:.0%}: "
+                     "time stamps left as logged")
+        return None
+    notes.append(f"{said} over {boot[-1] - b0:.0f} s: every time stamp scaled by {rate:.4f}")
+    return int(b0 * 1e6), rate

@@ -14,6 +14,7 @@ import re
 import statistics
 
 from guard.errors import SourceError
+from guard.sources.clock import gnss_time_clock
 from guard.sources.dataflash.index import HEAD, Log
 
 GPS_EPOCH = datetime.datetime(1980, 1, 6, tzinfo=datetime.timezone.utc)
@@ -123,12 +124,6 @@ def gps_utc(log: Log, gnss: tuple | None) -> tuple[datetime.date | None, int | N
     return None, None
 
 
-CLOCK_TOLERANCE = 0.002     # a crystal is within 50 ppm: 0.2 % apart is a clock that is not keeping time
-CLOCK_LIMIT = 0.2           # beyond 20 % the time stamps are not a clock at all: said, not corrected
-CLOCK_MIN_S = 30.0          # GNSS time over at least this long before the rate is judged
-CLOCK_JITTER_S = 0.05       # the fit's rms residual: more, and the two clocks do not run in a line
-
-
 def clock_rate(log: Log, gnss: tuple | None, notes: list[str]) -> tuple[int, float] | None:
     """(t0, rate): the autopilot's boot clock against the GNSS receiver's own (GPS week and ms, which
     every fix carries), fitted as a line over the whole log. A real autopilot's clock keeps time to
@@ -136,7 +131,8 @@ def clock_rate(log: Log, gnss: tuple | None, notes: list[str]) -> tuple[int, flo
     included, 8 % short, so its integrated speed, heading and position ran 8 % behind the receiver's).
     When the two part by more than CLOCK_TOLERANCE in a straight line, the reader scales its time
     stamps by `rate` about t0 (the first fix's boot time) and says so; a GNSS time that jumps (a
-    receiver restarting, or a spoofer moving it) is not a line, and corrects nothing."""
+    receiver restarting, or a spoofer moving it) is not a line, and corrects nothing
+    (guard.sources.clock.gnss_time_clock, which a ULog's GNSS time goes through too)."""
     if gnss is None:
         return None
     name, offs = gnss
@@ -149,23 +145,4 @@ def clock_rate(log: Log, gnss: tuple | None, notes: list[str]) -> tuple[int, flo
         if status is not None and wk is not None and wms is not None and status >= 3 and 0 < wk < 10_000:
             boot.append(t_us / 1e6)
             gps.append(wk * 604_800.0 + wms / 1e3)
-    if len(boot) < 20 or boot[-1] - boot[0] < CLOCK_MIN_S:
-        return None
-    b0, g0 = boot[0], gps[0]
-    x = [b - b0 for b in boot]
-    y = [g - g0 for g in gps]
-    mx, my = statistics.fmean(x), statistics.fmean(y)
-    sxx = sum((a - mx) ** 2 for a in x)
-    if sxx <= 0.0:
-        return None
-    rate = sum((a - mx) * (b - my) for a, b in zip(x, y)) / sxx
-    rms = math.sqrt(statistics.fmean([(b - my - rate * (a - mx)) ** 2 for a, b in zip(x, y)]))
-    if abs(rate - 1.0) <= CLOCK_TOLERANCE:
-        return None
-    said = f"the autopilot's clock ran {abs(rate - 1.0) * 100:.1f} % {'slow' if rate > 1.0 else 'fast'} against the GNSS receiver's"
-    if rms > CLOCK_JITTER_S or abs(rate - 1.0) > CLOCK_LIMIT:
-        notes.append(f"{said}, not in a straight line (rms {rms:.2f} s) or beyond {CLOCK_LIMIT:.0%}: "
-                     "time stamps left as logged")
-        return None
-    notes.append(f"{said} over {boot[-1] - b0:.0f} s: every time stamp scaled by {rate:.4f}")
-    return int(b0 * 1e6), rate
+    return gnss_time_clock(boot, gps, notes)
