@@ -29,7 +29,7 @@ import numpy as np
 
 from guard.core.aiding import Aid
 from guard.core.aiding.compass import NO_COMPASS_S, CompassWatch
-from guard.core.aiding.gnss import FreezeWatch, GnssAiding
+from guard.core.aiding.gnss import START_H_ACC_M, START_HDOP, FreezeWatch, GnssAiding
 from guard.core.aiding.tilt import Tilt
 from guard.core.aiding.imu import Averager, ImuAiding, StreamRate, fuse_rows, heading, level
 from guard.core.anchor import Learnt, diverged, initial_state
@@ -121,6 +121,7 @@ class Monitor:
         self.averager = Averager(self.cfg.imu_fusion_hz)
         self.detector.reset()
         self._heading_unset = False                 # the filter started before the magnetometer spoke
+        self._coarse_said = False                   # a fix too coarse to start on: said once per start
         self._estimate_owed: tuple[int, int] | None = None   # (t_us, gnss_index) of the alarm's epoch
 
     @property
@@ -225,6 +226,14 @@ class Monitor:
             self.gnss_lost = False
             events.append(Notice(fix.t_us, "info", "GNSS fix back" if self.ekf else "GNSS fix: monitoring starts"))
         if self.ekf is None:
+            coarse = self.gnss_aid.too_coarse_to_start(fix)
+            if coarse:                              # a receiver still finding itself is no reference
+                self.skipped["gnss_coarse_before_start"] += 1
+                if not self._coarse_said:
+                    self._coarse_said = True
+                    events.append(Notice(fix.t_us, "info", f"GNSS fix good to {coarse} only: monitoring starts "
+                                         f"once the receiver reports {START_H_ACC_M:g} m or HDOP {START_HDOP:g}"))
+                return events
             return events + self._initialise(fix)
         self.ekf.wander(self.gnss_aid.q_pos(fix))
         self._advance(fix.t_us)

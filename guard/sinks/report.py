@@ -20,6 +20,7 @@ KINDS = {GnssFix: "gnss", ImuSample: "imu", Attitude: "attitude"}
 SKIPPED = {
     "gnss_no_fix": "GNSS messages without a 3D fix (monitoring waits for one, or coasts on the IMU)",
     "gnss_resent": "GNSS messages resent with a time already seen",
+    "gnss_coarse_before_start": "GNSS fixes too coarse to start on (the receiver's accuracy over 5 m, or HDOP over 5)",
     "gnss_out_of_order": "GNSS messages stamped before the last one",
     "imu_resent": "IMU samples resent with a time already seen",
     "imu_out_of_order": "IMU samples stamped before the last one",

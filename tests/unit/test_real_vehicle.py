@@ -301,3 +301,32 @@ def test_on_gnss_alone_an_alarm_never_leaves_the_estimate_coasting_away(seed):
     far = max(math.hypot(e.east_m - e.fix_en[0], e.north_m - e.fix_en[1]) for e in estimates)
     assert far < 5.0, far
     assert "gnss_pos" in mon.alarmed
+
+
+@pytest.mark.parametrize("seed", [20, 21])
+def test_a_receiver_still_finding_itself_is_not_started_on(seed):
+    """For its first 15 s a receiver says its fixes are good to 20 m, and they lie 8 m north of where
+    it then settles (a real u-blox after its first fix: 47, 22, 11 m, its solution converging):
+    monitoring waits for a fix it calls good to 5 m, says so once and counts what it skipped, and
+    raises no alarm; started on the coarse fixes, the settling is a GNSS step."""
+    import pymap3d
+    def coarse(s):
+        if not isinstance(s, GnssFix) or s.t_us >= T0_US + 15_000_000:
+            return s
+        lat, lon, _ = pymap3d.enu2geodetic(0.0, 8.0, 0.0, s.lat_deg, s.lon_deg, 0.0)
+        return dataclasses.replace(s, lat_deg=float(lat), lon_deg=float(lon), h_acc_m=20.0)
+    samples = [coarse(s) for s in drive(90.0, yaw=0.4, seed=seed)]
+    mon, events = run(samples, GROUND)
+    assert of(events, Alarm) == []
+    said = [n for n in of(events, Notice) if "only: monitoring starts once" in n.text]
+    assert len(said) == 1 and "20 m" in said[0].text, [n.text for n in of(events, Notice)]
+    assert mon.skipped["gnss_coarse_before_start"] == 15 * 5
+    started = [n for n in of(events, Notice) if n.text.startswith("filter initialised")]
+    assert started[0].t_us >= T0_US + 15_000_000
+    from guard.core.aiding import gnss
+    gnss.START_H_ACC_M, keep = 1e9, gnss.START_H_ACC_M          # as before: started on the first fix
+    try:
+        _, events = run(samples, GROUND)
+    finally:
+        gnss.START_H_ACC_M = keep
+    assert [a for a in of(events, Alarm) if a.sensor == "gnss_pos"], "started on the coarse fixes, no alarm?"

@@ -42,6 +42,12 @@ def gnss_velocity_model(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 ACC_CAP = 10.0          # a reported accuracy counts up to this many times its floor
+# a receiver that has just found a fix says it is good to tens of metres (47 m, then 22, 11, for its first
+# 12 s on a real plane's u-blox with 5 satellites, HDOP 10.7), and its solution moves by metres as it
+# converges: the filter starts on a fix the receiver itself calls good to this (as EKF3 checks its
+# GPS before use), its HDOP where it reports no accuracy
+START_H_ACC_M = 5.0
+START_HDOP = 5.0
 
 
 class GnssAiding:
@@ -57,6 +63,14 @@ class GnssAiding:
                 return min(max(f.gnss_pos_sigma_m, f.gnss_pos_unreported_m * fix.hdop), ACC_CAP * f.gnss_pos_sigma_m)
             return f.gnss_pos_unreported_m
         return min(max(f.gnss_pos_sigma_m, f.gnss_pos_acc_fraction * fix.h_acc_m), ACC_CAP * f.gnss_pos_sigma_m)
+
+    def too_coarse_to_start(self, fix: GnssFix) -> str | None:
+        """What the receiver says of a fix too coarse to start the filter on (None: good enough)."""
+        if fix.h_acc_m and fix.h_acc_m > START_H_ACC_M:
+            return f"{fix.h_acc_m:.0f} m (its own accuracy)"
+        if not fix.h_acc_m and fix.hdop and fix.hdop > START_HDOP:
+            return f"HDOP {fix.hdop:.1f}"
+        return None
 
     def q_pos(self, fix: GnssFix) -> float:
         """The position's random walk until this fix: q_pos_m, per unit of HDOP for a receiver read by
