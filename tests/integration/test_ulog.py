@@ -282,3 +282,40 @@ def test_the_cli_never_shows_a_traceback_on_bad_copies(paper, tmp_path):
             assert json.loads(stdout)["source"] == str(path)    # pyulog's chatter kept off stdout
         else:
             assert str(path) in stderr
+
+
+def test_a_ulog_stamped_by_a_slow_clock_is_put_on_its_receivers_time(tmp_path):
+    """A ULog's fixes carry the receiver's UTC (time_utc_usec): the simulator's clean drive written as
+    a ULog whose every boot time stamp is compressed by 8 % (an autopilot clock 8 % slow) is found
+    out, said, and replays as the same drive does on a good clock: no alarm."""
+    import dataclasses as dc
+    import io
+
+    from pyulog import ULog
+
+    from guard.runtime.replay import replay
+    from guard_sim import scenario as scn
+    from guard_sim.run import run
+    from guard_sim.ulog import FORMATS, to_ulog, with_syncs
+
+    sc = dc.replace(scn.load("clean"), duration_s=120.0)
+    good = tmp_path / "good.ulg"
+    run(sc, 3, ulg=str(good))
+    ulog, rows = ULog(str(good)), {}
+    for d in ulog.data_list:
+        names = [f.field_name for f in d.field_data]
+        cols = [d.data[n].copy() for n in names]
+        for i, n in enumerate(names):
+            if n in ("timestamp", "timestamp_sample"):
+                cols[i] = (cols[i] / 1.08).astype(cols[i].dtype)
+        rows[d.name] = list(zip(*(c.tolist() for c in cols)))
+    buf = io.BytesIO()
+    to_ulog(rows, FORMATS).write_ulog(buf)
+    slow = tmp_path / "slow.ulg"
+    slow.write_bytes(with_syncs(buf.getvalue()))
+    assert not [n for n in replay(str(good))["notes"] if "clock" in n]
+    report = replay(str(slow))
+    said = [n for n in report["notes"] if "clock ran" in n]
+    assert len(said) == 1 and "slow against the GNSS receiver's" in said[0] and "scaled by 1.08" in said[0], \
+        report["notes"]
+    assert report["alarms"] == [], report["alarms"][:3]

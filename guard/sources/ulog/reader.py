@@ -54,6 +54,11 @@ class UlogReader(LogSource):
         self.rates_hz = survey.note_streams(sets, streams, imu_key, gps_key, self.notes)
         if gps_key and gps_key[0] in GPS_TOPICS:
             self.date, self.utc_offset_us = survey.utc_date(sets[gps_key])
+            clock = survey.gnss_clock(sets[gps_key], self.notes)   # on the receiver's time, where they part
+            if clock is not None:
+                t0, rate = clock
+                streams = [Stream(s.topic, (t0 + np.round((s.t_us - t0) * rate).astype(np.int64), *s.columns[1:]),
+                                  s.make) for s in streams]
         return streams
 
     def _stream(self, build, data, *more) -> Stream | None:

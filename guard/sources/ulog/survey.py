@@ -11,6 +11,7 @@ import datetime
 import numpy as np
 from pyulog import ULog
 
+from guard.sources.clock import gnss_time_clock
 from guard.sources.ulog.load import GPS_TOPICS
 
 
@@ -85,3 +86,17 @@ def utc_date(data) -> tuple[datetime.date | None, int | None]:
     first = int(utc[i])
     return (datetime.datetime.fromtimestamp(first / 1e6, datetime.timezone.utc).date(),
             first - int(data.data["timestamp"][i]))
+
+
+def gnss_clock(data, notes: list[str]) -> tuple[int, float] | None:
+    """(t0, rate) of the log's boot clock against the GNSS receiver's UTC (time_utc_usec), where the
+    two part in a straight line (guard.sources.clock.gnss_time_clock, as a DataFlash log's GNSS time
+    is checked); None: as logged."""
+    utc = data.data.get("time_utc_usec")
+    if utc is None:
+        return None
+    t = data.data["timestamp"]
+    known = (utc > 946_684_800_000_000) & (utc < 4_102_444_800_000_000)
+    if "fix_type" in data.data:
+        known &= data.data["fix_type"] >= 3
+    return gnss_time_clock((t[known] / 1e6).tolist(), (utc[known] / 1e6).tolist(), notes)
