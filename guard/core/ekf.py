@@ -198,6 +198,14 @@ class NavEKF:
             w = self.cfg.q_yaw_rate_air_radps if air else self.cfg.q_yaw_rate_radps
             self.q[W] = w * w
 
+    def blow(self, dv_var: float) -> None:
+        """A blow the IMU could not measure (guard.core.aiding.impact): the velocity's variance grows by
+        dv_var, (m/s)^2, and the acceleration is unknown again."""
+        self.P[VX, VX] += dv_var
+        self.P[VY, VY] += dv_var
+        for i in (AX, AY):
+            self.P[i, i] = max(self.P[i, i], self.cfg.p0_accel_mps2 ** 2)
+
     def wander(self, q_pos: float) -> None:
         """The position's random walk (m/sqrt(s)): the receiver's correlated error the estimate follows."""
         self.q[X] = self.q[Y] = q_pos * q_pos

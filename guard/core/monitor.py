@@ -30,6 +30,7 @@ import numpy as np
 from guard.core.aiding import Aid
 from guard.core.aiding.compass import NO_COMPASS_S, CompassWatch
 from guard.core.aiding.gnss import START_H_ACC_M, START_HDOP, FreezeWatch, GnssAiding
+from guard.core.aiding.impact import BUDGET_S, HOLD_S, IMPACT_G, WINDOW_S, Impact
 from guard.core.aiding.tilt import Tilt
 from guard.core.aiding.imu import Averager, ImuAiding, StreamRate, fuse_rows, heading, level
 from guard.core.anchor import Learnt, diverged, initial_state
@@ -119,6 +120,7 @@ class Monitor:
         self.judge = Judge(self.cfg, self.detector, self.health, self.witnesses, self.history, self.longrun)
         self.freeze = FreezeWatch(self.cfg.freeze_speed_mps)
         self.averager = Averager(self.cfg.imu_fusion_hz)
+        self.impact = Impact()
         self.detector.reset()
         self._heading_unset = False                 # the filter started before the magnetometer spoke
         self._coarse_said = False                   # a fix too coarse to start on: said once per start
@@ -312,13 +314,17 @@ class Monitor:
         ax, ay, rate, mag, tilt, tilt_rate = level(s, *self.tilt.at(s))
         self._last_mag = mag
         events += self._compass(s.t_us, mag is not None)
+        aside = self.inertial and self.ekf is not None and self._blow(s, events)
         self.imu_aid.noise.add(s.t_us, ax, ay, rate, None if mag is None else heading(*mag, self.declination),
-                               learn=self.judge.calm)
+                               learn=self.judge.calm and not aside)
         if self.inertial is False:
             self.skipped["imu_no_compass" if self.compass.absent else "imu_too_slow"] += 1
             return events
         if self.ekf is None:
             self.skipped["imu_before_first_fix"] += 1
+            return events
+        if aside:
+            self.skipped["imu_impact"] += 1
             return events
         due = self.averager.add(s.t_us, ax, ay, rate, mag, tilt, tilt_rate)
         if due is None:
@@ -347,6 +353,25 @@ class Monitor:
             keep.append(len(r) - 1)                # a constraint, not a sensor: never tested, always fused
         self.history.imu_fused(s.t_us, fuse_rows(self.ekf, s.t_us, aid, r, S, PHT, keep, angle), self.ekf.x)
         return events
+
+    def _blow(self, s: ImuSample, events: list[Event]) -> bool:
+        """Whether the IMU is set aside for a blow (guard.core.aiding.impact); the first of each filter's
+        is said, and so is a run of them too long to be blows."""
+        aside, dv_var = self.impact.check(s)
+        if aside:
+            self.averager.drop()                    # a mean over the blow would carry it on
+            if dv_var > 0.0:
+                self.ekf.blow(dv_var)
+            if not self.impact.said:
+                self.impact.said = True
+                events.append(Notice(s.t_us, "info", f"a blow at the IMU ({self.impact.peak_g:.1f} g: a landing, a "
+                                     f"crash, a kerb): its readings set aside for {HOLD_S:g} s after each reading over "
+                                     f"{IMPACT_G:g} g, the GNSS holding the estimate (counted as imu_impact)"))
+        elif self.impact.overrun and not self.impact.overrun_said:
+            self.impact.overrun_said = True
+            events.append(Notice(s.t_us, "warning", f"the IMU read over {IMPACT_G:g} g for more than {BUDGET_S:g} s "
+                                 f"of {WINDOW_S:g} s: not blows; it is used and tested as it reads"))
+        return aside
 
     def _compass(self, t_us: int, heard: bool) -> list[Event]:
         """An air vehicle without a compass is tested on its GNSS alone; one whose magnetometer speaks

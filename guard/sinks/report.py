@@ -27,6 +27,7 @@ SKIPPED = {
     "imu_before_first_fix": "IMU samples before the first GNSS fix (nothing to integrate them from)",
     "imu_too_slow": "IMU samples of a stream too slow to integrate (GNSS tested alone)",
     "imu_no_compass": "IMU samples of an air vehicle without a compass, not integrated (GNSS tested alone)",
+    "imu_impact": "IMU samples within 0.5 s of a blow over 3 g (a landing, a kerb): set aside, the GNSS holding",
     "imu_no_magnetometer": "IMU samples without any magnetometer reading (no heading reference)",
     "time_off_base": "samples stamped far off the stream's time base",
     "attitude_non_finite": "attitude messages with a non-finite or impossible roll or pitch",

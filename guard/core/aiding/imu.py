@@ -145,6 +145,10 @@ class Averager:
         self.sum = [0.0] * 7                    # ax, ay, yaw rate, m_x, m_y, tilt, tilt rate since the last fusion
         self.n = self.mag_n = 0
 
+    def drop(self) -> None:
+        """Forget the samples since the last fusion (a blow among them: guard.core.aiding.impact)."""
+        self._clear()
+
     def add(self, t_us: int, ax: float, ay: float, rate: float, mag, tilt: float, tilt_rate: float) -> tuple | None:
         """Add a sample; when a fusion is due, (ax, ay, rate, mag, tilt, tilt rate) averaged and the
         number of samples in the mean, else None."""

@@ -1,0 +1,80 @@
+"""A blow at the IMU (guard.core.aiding.impact): a point-sampled impact is set aside, not integrated
+into a velocity that never happened; an attack after it, or one dressed as a string of blows, is caught."""
+
+import dataclasses
+import math
+
+import pytest
+
+from guard.core.aiding import impact
+from guard.model.events import Alarm, Notice
+from guard.model.samples import ImuSample
+from unit.synthetic import T0_US, drive, of, run
+
+BLOW_AT_S = 60.0
+# three samples (60 ms at 50 Hz) of a blow as an IMU logged at 50 Hz reads it: 4 to 6 g, one way,
+# while the vehicle (its GNSS) goes on as it was
+BLOW = ((38.0, -22.0, -50.0), (-30.0, 18.0, -60.0), (12.0, 25.0, -35.0))
+
+
+def blown(samples, at_s=BLOW_AT_S, blow=BLOW):
+    out, k = [], None
+    for s in samples:
+        if isinstance(s, ImuSample) and s.t_us >= T0_US + at_s * 1e6 and (k is None or k < len(blow)):
+            k = 0 if k is None else k
+            s = dataclasses.replace(s, acc_x_mps2=blow[k][0], acc_y_mps2=blow[k][1], acc_z_mps2=blow[k][2])
+            k += 1
+        out.append(s)
+    return out
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_a_blow_is_set_aside_and_raises_nothing(seed):
+    mon, events = run(blown(drive(120.0, yaw=0.7, seed=seed)))
+    assert of(events, Alarm) == []
+    said = [n for n in of(events, Notice) if "blow at the IMU" in n.text]
+    first_g = math.dist(BLOW[0], (0.0, 0.0, 0.0)) / impact.G
+    assert len(said) == 1 and f"{first_g:.1f} g" in said[0].text, said
+    assert len(BLOW) + 24 <= mon.skipped["imu_impact"] <= len(BLOW) + 26    # and 0.5 s at 50 Hz after it
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_the_same_blow_integrated_alarms(seed, monkeypatch):
+    """The control: with the rule off, the same blow, integrated as if it lasted each sample's 20 ms,
+    is an alarm."""
+    monkeypatch.setattr(impact, "IMPACT_G", 1e9)
+    mon, events = run(blown(drive(120.0, yaw=0.7, seed=seed)))
+    assert of(events, Alarm)
+    assert "imu_impact" not in mon.skipped
+
+
+def _first_alarm_after(samples, start):
+    alarms = [a for a in of(run(samples)[1], Alarm) if a.t_us >= start]
+    return (alarms[0].t_us - start) / 1e6 if alarms else None
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_an_accelerometer_attack_just_after_a_blow_is_caught_as_without_it(seed):
+    """0.5 m/s^2 on x from 1 s after the blow (within 0.5 s of the IMU's return): caught as soon as the
+    same attack on the same drive without a blow."""
+    start = T0_US + (BLOW_AT_S + 1.0) * 1e6
+
+    def attacked(samples):
+        return [dataclasses.replace(s, acc_x_mps2=s.acc_x_mps2 + 0.5) if isinstance(s, ImuSample) and
+                s.t_us >= start else s for s in samples]
+    clean = drive(120.0, yaw=0.7, seed=seed)
+    without, after = _first_alarm_after(attacked(clean), start), _first_alarm_after(attacked(blown(clean)), start)
+    assert without is not None and after is not None and after <= without + 0.5, (without, after)
+
+
+def test_blows_that_do_not_stop_are_not_blows():
+    """An attacker writing 4 g into every fourth accelerometer sample from 60 s: the IMU is set aside
+    at most BUDGET_S of WINDOW_S, then used and tested as it reads, with a warning, and the attack is caught."""
+    start = T0_US + BLOW_AT_S * 1e6
+    samples = [dataclasses.replace(s, acc_x_mps2=40.0) if isinstance(s, ImuSample) and s.t_us >= start
+               and (s.t_us - T0_US) // 20_000 % 4 == 0 else s for s in drive(120.0, yaw=0.7, seed=1)]
+    mon, events = run(samples)
+    warned = [n for n in of(events, Notice) if "not blows" in n.text]
+    assert len(warned) == 1 and warned[0].t_us - start <= (impact.BUDGET_S + 0.1) * 1e6, warned
+    alarms = of(events, Alarm)
+    assert alarms and alarms[0].t_us - warned[0].t_us < 1e6, alarms[:1]
