@@ -24,10 +24,13 @@ class Epoch(NamedTuple):
 
 
 class ImuFusion(NamedTuple):
+    """One IMU fusion; or, with z None, a blow the IMU could not measure (R: the velocity variance it
+    added, guard.core.aiding.impact), which a rewind must add again."""
+
     t_us: int
-    z: np.ndarray
-    H: np.ndarray
-    R: np.ndarray
+    z: np.ndarray | None
+    H: np.ndarray | None
+    R: np.ndarray | float
     angle_rows: tuple[int, ...]
 
 
@@ -69,6 +72,11 @@ class History:
         if self.delay_s > 0:
             self.states.append((t_us, x.copy()))
 
+    def blow(self, t_us: int, dv_var: float) -> None:
+        """A blow's added velocity variance, kept while an epoch may need it."""
+        if self.epochs:
+            self.imu_log.append(ImuFusion(t_us, None, None, dv_var, ()))
+
     def oldest_x(self) -> np.ndarray | None:
         return self.epochs[0].x if self.epochs else None
 
@@ -107,6 +115,9 @@ class History:
                 continue
             ekf.predict((t_imu - t) / 1e6)
             t = t_imu
+            if z is None:
+                ekf.blow(R)
+                continue
             r, S, PHT = ekf.innovation(z, H @ ekf.x, H, R, angle_rows=angle)
             ekf.fuse(r, S, H, R, PHT)
             if delayed:

@@ -362,6 +362,7 @@ class Monitor:
             self.averager.drop()                    # a mean over the blow would carry it on
             if dv_var > 0.0:
                 self.ekf.blow(dv_var)
+                self.history.blow(s.t_us, dv_var)
             if not self.impact.said:
                 self.impact.said = True
                 events.append(Notice(s.t_us, "info", f"a blow at the IMU ({self.impact.peak_g:.1f} g: a landing, a "

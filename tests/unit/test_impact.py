@@ -4,9 +4,12 @@ into a velocity that never happened; an attack after it, or one dressed as a str
 import dataclasses
 import math
 
+import numpy as np
 import pytest
 
 from guard.core.aiding import impact
+from guard.core.ekf import VX, FilterConfig, NavEKF
+from guard.core.history import History
 from guard.model.events import Alarm, Notice
 from guard.model.samples import ImuSample
 from unit.synthetic import T0_US, drive, of, run
@@ -78,3 +81,17 @@ def test_blows_that_do_not_stop_are_not_blows():
     assert len(warned) == 1 and warned[0].t_us - start <= (impact.BUDGET_S + 0.1) * 1e6, warned
     alarms = of(events, Alarm)
     assert alarms and alarms[0].t_us - warned[0].t_us < 1e6, alarms[:1]
+
+
+def test_a_rewind_over_a_blow_adds_it_again():
+    """A GNSS alarm's rewind re-runs the IMU fusions since the attack's first epoch: a blow among them
+    widens the velocity again, as it did the first time."""
+    def rewound(with_blow):
+        ekf = NavEKF(FilterConfig(), np.zeros(13))
+        h = History(20.0, 0.0, 50.0)
+        h.epoch(0, ekf.x, ekf.P)
+        if with_blow:
+            h.blow(100_000, 4.0)
+        h.rewind(ekf, 1, 200_000)
+        return ekf.P[VX, VX]
+    assert rewound(True) - rewound(False) == pytest.approx(4.0, rel=0.01)
