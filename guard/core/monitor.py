@@ -9,8 +9,9 @@ the orchestration; each part owns its data and never calls back:
     isolation   the heading's witnesses: which sensor an alarm names        guard.core.isolation
     history     the rewind after a GNSS alarm, a late receiver's states      guard.core.history
 
-Per IMU sample: level the IMU with the autopilot's roll and pitch (a flying drone is tilted), average
-a fast IMU down to `imu_fusion_hz`, predict the filter to the sample's time, form the innovations
+Per IMU sample: level the IMU with the autopilot's roll and pitch (a flying drone is tilted), set it
+aside within 0.5 s of a blow over 3 g (aiding/impact: a landing's point sample is no acceleration to
+integrate), average a fast IMU down to `imu_fusion_hz`, predict the filter to the sample's time, form the innovations
 of heading, gyro and accelerometer, test them, fuse them. Per GNSS sample: the same with position
 and velocity, then an Estimate. A GNSS alarm rewinds the filter to before the attack at the next
 sample, once the alarm is out; the alarm epoch's Estimate waits for it and comes out with that
