@@ -384,6 +384,10 @@ class Monitor:
         if verdict == "back":
             self.inertial = True
             return self._reinitialise(t_us, "a magnetometer reading, after none: the IMU is integrated again")
+        if verdict == "ground":
+            self.inertial = True
+            return self._reinitialise(t_us, "the autopilot reports a vehicle on wheels: its IMU is integrated again "
+                                            "without a compass (its GNSS course witnesses the heading)")
         self.inertial = False
         if self.ekf is not None:
             self.ekf.hold_heading()

@@ -10,7 +10,7 @@ import pytest
 from guard.core.ekf import BM, FilterConfig
 from guard.core.monitor import MonitorConfig
 from guard.model.events import Alarm, Cleared, Estimate, Notice
-from guard.model.samples import GnssFix
+from guard.model.samples import GnssFix, VehicleType
 from unit.synthetic import T0_US, drive, of, run
 
 GROUND = MonitorConfig(declination_deg=0.0, vehicle="ground")
@@ -220,6 +220,20 @@ def test_a_ground_vehicle_without_a_compass_keeps_its_imu():
     mon, events = run(drive(60.0, yaw=0.4, seed=14, mag=lambda t: False), GROUND)
     assert mon.inertial is True and not [n for n in of(events, Notice) if "no magnetometer" in n.text]
     assert of(events, Alarm) == []
+
+
+def test_a_late_word_that_the_vehicle_is_on_wheels_gives_its_imu_back():
+    """An "auto" vehicle without a compass whose autopilot says "ground" only after its IMU was set aside
+    (a link joined late, a HEARTBEAT lost): the IMU is integrated again, as a ground vehicle's would have
+    been from the start, said once; nothing alarms and no sample after it is set aside for want of a compass."""
+    samples = drive(60.0, yaw=0.4, seed=14, mag=lambda t: False)
+    k = next(i for i, s in enumerate(samples) if s.t_us >= T0_US + 20_000_000)
+    mon, events = run(samples[:k] + [VehicleType(ground=True)] + samples[k:], MonitorConfig(declination_deg=0.0))
+    said = [n.text for n in of(events, Notice) if "no magnetometer reading" in n.text or "on wheels" in n.text]
+    assert len(said) == 2 and "on wheels" in said[1], said
+    assert mon.inertial is True and of(events, Alarm) == []
+    n_aside = mon.skipped["imu_no_compass"]
+    assert 0 < n_aside <= 11 * 50, n_aside        # from 10 s to 20 s only, at 50 Hz
 
 
 def test_a_receiver_that_reports_only_its_hdop_is_trusted_by_it():

@@ -6,7 +6,8 @@ then wanders with the gyro, and every acceleration integrated along a wrong head
 error the GNSS contradicts (real copters without a compass: 7 to 33 false alarms a flight). Its IMU
 is then not integrated, as a slow one is not: GNSS position and velocity are tested against each
 other alone. A ground vehicle keeps its IMU: its sideways constraint makes the GNSS course witness
-the heading. A magnetometer that speaks later (one that started late) gives the heading back.
+the heading. A magnetometer that speaks later (one that started late) gives the heading back, and
+so does the autopilot's word that the vehicle is on wheels, if it comes after the IMU was set aside.
 
 This file decides; the monitor acts (guard.core.monitor: holds the heading, or starts the filter
 again inertial).
@@ -25,12 +26,13 @@ class CompassWatch:
 
     def check(self, t_us: int, heard: bool, ground: bool, inertial: bool | None) -> str | None:
         """Per IMU sample: "absent" once an inertial air vehicle's IMU has spoken NO_COMPASS_S without a
-        magnetometer reading; "back" at the first reading after that; None otherwise (every sample
-        once a magnetometer has spoken)."""
-        if heard and self.absent:
+        magnetometer reading; "back" at the first reading after that, "ground" if the vehicle turns out
+        to be on wheels (the autopilot's word came late); None otherwise (every sample once a
+        magnetometer has spoken)."""
+        if self.absent and (heard or ground):
             self.absent = False
-            self.heard = True
-            return "back"
+            self.heard = heard
+            return "back" if heard else "ground"
         self.heard |= heard
         if self.heard:
             return None
