@@ -55,6 +55,10 @@ def _replay(args) -> int:
                  f"{alarms[0]['channel']})") if alarms else "no alarm"
         print(f"{args.file}: {report['duration_s']:.1f} s, {report['gnss_samples']} GNSS samples, "
               f"{len(alarms)} alarm(s), {first}")
+        standing = sum(1 for a in alarms if a["standing"])
+        if standing:
+            print(f"  {standing} of the alarms were a standing alarm's sensor disagreeing again (after a "
+                  "re-anchoring or a restart on it)")
         gap = report["estimate_to_fix_m"]
         if gap["fixes"]:
             print(f"  the estimate from the fixes: {gap['mean']:.1f} m on average, {gap['max']:.1f} m at most, "

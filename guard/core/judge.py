@@ -74,7 +74,7 @@ class Judge:
             if named != sensor:                 # a witness named it: its own offset, not the alarm's
                 offset = self.witnesses.gyro_bias() if named == Sensor.GYRO else self.witnesses.lateral_bias(bw)
             events.append(Alarm(t_us, gnss_index, named, channel, stat[i], thr[i], offset,
-                                self.detector.name, ambiguous))
+                                self.detector.name, ambiguous, standing=named in health.latched))
             if not self.cfg.exclude_on_alarm:
                 continue
             health.exclude(named, t_us, offset)
@@ -138,8 +138,11 @@ class Judge:
         anchor(ekf, fix, en, gnss_aid.sigma_pos(fix), gnss_aid.sigma_vel(fix))
         self.history.epochs.clear()                 # a rewind goes no further back than the anchor
         self.history.imu_log.clear()
-        events: list[Event] = [Notice(fix.t_us, "warning", f"GNSS could not be confirmed or refuted (the "
-                                      f"estimate +-{sigma:.0f} m without it): re-anchored on it, its alarm stands")]
+        # said as a warning once per alarm: again while the same alarm stands, it is the same news
+        again = any(s in self.health.latched for s in RECEIVER if s in self.health.excluded)
+        events: list[Event] = [Notice(fix.t_us, "info" if again else "warning", f"GNSS could not be confirmed "
+                                      f"or refuted (the estimate +-{sigma:.0f} m without it): re-anchored on it"
+                                      f"{' again' if again else ''}, its alarm stands")]
         for sensor in [s for s in RECEIVER if s in self.health.excluded]:
             events += self.readmit(sensor, fix.t_us, gnss_index, silent=True)
         return events

@@ -66,7 +66,7 @@ JSON_SCHEMAS = {
         S_diag=_NUMS, statistic=_NUMS, threshold=_NUMS, fused=_BOOL),
     "guard.Alarm": dict(
         kind={"enum": ["alarm", "cleared"]}, t_us=_INT, gnss_index=_INT, sensor=_STR, channel=_STR,
-        statistic=_NUM, threshold=_NUM, offset=_NUM, detector=_STR),
+        statistic=_NUM, threshold=_NUM, offset=_NUM, detector=_STR, standing=_BOOL),
 }
 PROTO_CLASSES = {cls.DESCRIPTOR.full_name: cls for cls in (LocationFix, Log)}
 
@@ -200,9 +200,9 @@ class McapLog(Sink):
         self._json("/alarms", "guard.Alarm", ev.t_us, dict(
             kind="alarm", t_us=ev.t_us, gnss_index=int(ev.gnss_index), sensor=ev.sensor, channel=ev.channel,
             statistic=_num(ev.statistic), threshold=_num(ev.threshold), offset=_num(ev.offset),
-            detector=ev.detector))
+            detector=ev.detector, standing=bool(ev.standing)))
         self._log(ev.t_us, Log.ERROR,
-                  f"ALARM {ev.sensor}/{ev.channel}: {ev.detector} statistic {ev.statistic:.3g} > threshold "
+                  f"ALARM{' (standing, again)' if ev.standing else ''} {ev.sensor}/{ev.channel}: {ev.detector} statistic {ev.statistic:.3g} > threshold "
                   f"{ev.threshold:.3g}, offset {ev.offset:+.3g} {UNITS.get(ev.sensor, '')} "
                   f"(GNSS sample {ev.gnss_index})")
         self.sync()

@@ -96,7 +96,8 @@ class ReportSink(Sink):
             if isinstance(e, Alarm):
                 self.alarms.append({"time_usec": e.t_us, "gnss_index": e.gnss_index, "sensor": e.sensor,
                                     "channel": e.channel, "statistic": e.statistic, "threshold": e.threshold,
-                                    "offset": e.offset, "ambiguous_with": list(e.ambiguous_with)})
+                                    "offset": e.offset, "ambiguous_with": list(e.ambiguous_with),
+                                    "standing": e.standing})
             elif isinstance(e, Cleared):
                 self.cleared.append({"time_usec": e.t_us, "gnss_index": e.gnss_index, "sensor": e.sensor,
                                      "channel": e.channel})

@@ -3,6 +3,8 @@ grd_ratio (NAMED_VALUE_FLOAT) as an onboard computer (component 191).
 
 - STATUSTEXT CRITICAL when an alarm is raised (sensor, axis, estimated offset, GNSS sample), and
   NOTICE when it clears; an alarm stays latched while the sensor is excluded, so it is sent once;
+  a sensor whose alarm stands and alarms again (a ramp on a GNSS tested alone, after each
+  re-anchoring) is "GUARD still ..." at WARNING, at most once per STANDING_EVERY_S for that sensor;
   a core Notice at WARNING goes out at WARNING. Warnings and notices are rate-limited; an alarm never is.
 - A text longer than 50 bytes goes in MAVLink 2 chunks (one id, chunk_seq 0, 1, ...).
 - NAMED_VALUE_FLOAT "grd_ratio": the largest statistic/threshold ratio since the last send.
@@ -11,6 +13,7 @@ The wording of every line is here; the daemon and the terminal print the same li
 
 from __future__ import annotations
 
+import math
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -20,12 +23,19 @@ from guard.sinks.base import Sink
 from guard.sources.link import MavlinkLink, mavlink
 
 STATUSTEXT_PER_S = 4                                    # rate limit of what we send
+STANDING_EVERY_S = 30.0                                 # a standing alarm's repeats: once per this, per sensor
 
 
 def alarm_text(e: Alarm) -> str:
     """At most 50 characters, readable on a ground station: sensor(s), axis, offset, GNSS sample."""
     sensors = "|".join((e.sensor, *e.ambiguous_with))     # "mag|gyro": either, the physics cannot tell here
     return f"GUARD ALARM {sensors} {e.channel} {e.offset:+.3g}{UNITS[e.sensor]} k={e.gnss_index}"[:50]
+
+
+def standing_text(e: Alarm) -> str:
+    """A standing alarm's repeat: the disagreement goes on."""
+    sensors = "|".join((e.sensor, *e.ambiguous_with))
+    return f"GUARD still {sensors} {e.channel} {e.offset:+.3g}{UNITS[e.sensor]} k={e.gnss_index}"[:50]
 
 
 def clear_text(e: Cleared) -> str:
@@ -47,12 +57,16 @@ class StatusText(Sink):
         self._next_stat = 0.0
         self._sent: list[float] = []
         self._text_id = 0                   # the last long STATUSTEXT's chunk id
+        self._standing: dict[str, int] = {}     # sensor -> when its standing alarm was last said (t_us)
 
     def on_events(self, events) -> None:
         for e in events:
             if isinstance(e, Alarm):
                 self.alarms += 1
                 self.peak = max(self.peak, e.statistic / e.threshold if e.threshold else 1.0)
+                if e.standing:
+                    self._again(e)
+                    continue
                 text = alarm_text(e)
                 self.out(f"guard: {text} (t={e.t_us / 1e6:.2f} s, statistic {e.statistic:.1f} > {e.threshold:.1f})")
                 self.statustext(text, "critical")
@@ -62,6 +76,18 @@ class StatusText(Sink):
                 self.statustext(text, "notice")
             elif isinstance(e, Notice):
                 self.operator(e.text, level=e.level, send=e.level == "warning")
+
+    def _again(self, e: Alarm) -> None:
+        """A standing alarm's repeat: said at WARNING, once per STANDING_EVERY_S per sensor; the rest counted."""
+        since = e.t_us - self._standing.get(e.sensor, -math.inf)     # the samples' time: a replay's too
+        if 0 <= since < STANDING_EVERY_S * 1e6:                       # (after a reboot's time jump: said)
+            self.skipped["standing_alarm_repeats"] += 1
+            return
+        self._standing[e.sensor] = e.t_us
+        text = standing_text(e)
+        self.out(f"guard: {text} (t={e.t_us / 1e6:.2f} s, its alarm stands; statistic {e.statistic:.1f} > "
+                 f"{e.threshold:.1f}; said at most every {STANDING_EVERY_S:g} s)")
+        self.statustext(text, "warning")
 
     def tick(self, ratio=lambda: 0.0) -> None:
         """Heartbeat and the statistic (`ratio()`, called only when due), when due."""

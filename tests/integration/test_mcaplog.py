@@ -122,7 +122,7 @@ def test_round_trip(tmp_path):
     alarms = [json.loads(m.data) for _, _, m in by_topic["/alarms"]]
     assert alarms == [
         {"kind": "alarm", "t_us": t_of(10), "gnss_index": 10, "sensor": "gnss_pos", "channel": "north",
-         "statistic": 12.5, "threshold": 10.0, "offset": 9.8, "detector": "cusum"},
+         "statistic": 12.5, "threshold": 10.0, "offset": 9.8, "detector": "cusum", "standing": False},
         {"kind": "cleared", "t_us": t_of(15), "gnss_index": 15, "sensor": "gnss_pos", "channel": "north"}]
     logs = [Log.FromString(m.data) for _, _, m in by_topic["/log"]]
     assert [x.level for x in logs] == [Log.WARNING, Log.ERROR, Log.INFO]
