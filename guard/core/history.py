@@ -24,14 +24,19 @@ class Epoch(NamedTuple):
 
 
 class ImuFusion(NamedTuple):
-    """One IMU fusion; or, with z None, a blow the IMU could not measure (R: the velocity variance it
-    added, guard.core.aiding.impact), which a rewind must add again."""
+    t_us: int
+    z: np.ndarray
+    H: np.ndarray
+    R: np.ndarray
+    angle_rows: tuple[int, ...]
+
+
+class Blow(NamedTuple):
+    """A blow the IMU could not measure (guard.core.aiding.impact): the velocity variance it added,
+    which a rewind adds again."""
 
     t_us: int
-    z: np.ndarray | None
-    H: np.ndarray | None
-    R: np.ndarray | float
-    angle_rows: tuple[int, ...]
+    dv_var: float
 
 
 def keep_since(history: deque, t_us: float, at: int = 0) -> None:
@@ -52,7 +57,7 @@ class History:
         self.rewind_s = rewind_s
         self.delay_s = delay_s
         self.epochs: deque[Epoch] = deque()
-        self.imu_log: deque[ImuFusion] = deque()
+        self.imu_log: deque[ImuFusion | Blow] = deque()
         self.states: deque = deque(maxlen=int((delay_s + 1.0) * fuse_hz) + 2)   # [t_us, x] pairs
 
     def __len__(self) -> int:
@@ -75,7 +80,7 @@ class History:
     def blow(self, t_us: int, dv_var: float) -> None:
         """A blow's added velocity variance, kept while an epoch may need it."""
         if self.epochs:
-            self.imu_log.append(ImuFusion(t_us, None, None, dv_var, ()))
+            self.imu_log.append(Blow(t_us, dv_var))
 
     def oldest_x(self) -> np.ndarray | None:
         return self.epochs[0].x if self.epochs else None
@@ -110,18 +115,19 @@ class History:
         t0, x, P = self.epochs[-epochs]
         delayed, states = self.delay_s > 0, [(t0, x.copy())]   # with a receiver latency: re-run states
         ekf.x, ekf.P, t = x.copy(), P.copy(), t0
-        for t_imu, z, H, R, angle in self.imu_log:
-            if t_imu <= t0:
+        for entry in self.imu_log:
+            if entry.t_us <= t0:
                 continue
-            ekf.predict((t_imu - t) / 1e6)
-            t = t_imu
-            if z is None:
-                ekf.blow(R)
+            ekf.predict((entry.t_us - t) / 1e6)
+            t = entry.t_us
+            if isinstance(entry, Blow):
+                ekf.blow(entry.dv_var)
                 continue
+            _, z, H, R, angle = entry
             r, S, PHT = ekf.innovation(z, H @ ekf.x, H, R, angle_rows=angle)
             ekf.fuse(r, S, H, R, PHT)
             if delayed:
-                states.append((t_imu, ekf.x.copy()))
+                states.append((t, ekf.x.copy()))
         ekf.predict((now_us - t) / 1e6)
         self.epochs.clear()
         self.imu_log.clear()

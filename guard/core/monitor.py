@@ -360,7 +360,7 @@ class Monitor:
         is said, and so is a run of them too long to be blows."""
         aside, dv_var = self.impact.check(s)
         if aside:
-            self.averager.drop()                    # a mean over the blow would carry it on
+            self.averager.drop()                    # the samples before it, not to be averaged with those 0.5 s after
             if dv_var > 0.0:
                 self.ekf.blow(dv_var)
                 self.history.blow(s.t_us, dv_var)

@@ -52,6 +52,7 @@ def test_the_crash_log_says_its_blow_and_little_before(shared):
     last = trace.gnss[-1][0]
     blows = [n for n in report["notices"] if "blow at the IMU" in n["text"]]
     assert len(blows) == 1 and last - blows[0]["time_usec"] < 10e6, blows
+    assert [a for a in report["alarms"] if a["gnss_index"] >= end - 50] == []     # the crash: no alarm
     assert report["skipped"]["imu_impact"] > 0
 
 

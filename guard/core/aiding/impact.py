@@ -14,10 +14,10 @@ by what the blow may have done, ((|f| - g) T)^2 per sample (`NavEKF.blow`). A fl
 vehicle's specific force stays well under it: a multicopter's thrust is about twice its weight, a
 car corners and brakes at under 1 g.
 
-An IMU attack cannot hide behind it for long: blows are brief, and once more than BUDGET_S of the
-last WINDOW_S seconds were set aside, the rule is off and the IMU is used and tested as it comes
-(a WARNING says so). What it costs: an attack on the IMU in the HOLD_S after a real blow is tested
-only from then on.
+An IMU attack cannot hide behind it for long: blows are brief, and no more than BUDGET_S of any
+WINDOW_S seconds is set aside; beyond that the IMU is used and tested as it comes (a WARNING says so
+the first time). What it costs: an attack on the IMU in the HOLD_S after a real blow is tested only
+from then on, and one written as a string of blows is tested WINDOW_S - BUDGET_S of every WINDOW_S.
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ class Impact:
         self._aside: deque[tuple[int, float]] = deque()     # (t_us, s set aside) within the last WINDOW_S
         self._aside_s = 0.0
         self._last_t: int | None = None
-        self.said = self.overrun = self.overrun_said = False
+        self.said = self.overrun = self.overrun_said = False     # overrun: the budget was spent at least once
         self.peak_g = 0.0
 
     def check(self, s: ImuSample) -> tuple[bool, float]:
@@ -52,19 +52,22 @@ class Impact:
         self._last_t = s.t_us
         f = math.sqrt(s.acc_x_mps2 ** 2 + s.acc_y_mps2 ** 2 + s.acc_z_mps2 ** 2)
         blow = f > IMPACT_G * G
-        if blow and not self.overrun:
-            self.until = s.t_us + int(HOLD_S * 1e6)
-            self.peak_g = max(self.peak_g, f / G)
-        if self.overrun or self.until is None or s.t_us > self.until:
-            return False, 0.0
-        self._spend(s.t_us, dt)
-        if self._aside_s > BUDGET_S:
+        self._forget(s.t_us)
+        if self._aside_s + dt > BUDGET_S:           # the window's budget is spent: tested as it reads
             self.overrun, self.until = True, None
             return False, 0.0
+        if blow:
+            self.until = s.t_us + int(HOLD_S * 1e6)
+            self.peak_g = max(self.peak_g, f / G)
+        if self.until is None or s.t_us > self.until:
+            return False, 0.0
+        self._aside.append((s.t_us, dt))
+        self._aside_s += dt
         return True, ((f - G) * dt) ** 2 if blow else 0.0
 
-    def _spend(self, t_us: int, dt: float) -> None:
-        self._aside.append((t_us, dt))
-        self._aside_s += dt
-        while self._aside and self._aside[0][0] < t_us - WINDOW_S * 1e6:
+    def _forget(self, t_us: int) -> None:
+        """Drop what was set aside more than WINDOW_S ago (a time that jumped back: all of it)."""
+        while self._aside and not 0 <= t_us - self._aside[0][0] <= WINDOW_S * 1e6:
             self._aside_s -= self._aside.popleft()[1]
+        if not self._aside:
+            self._aside_s = 0.0

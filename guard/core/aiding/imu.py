@@ -146,7 +146,8 @@ class Averager:
         self.n = self.mag_n = 0
 
     def drop(self) -> None:
-        """Forget the samples since the last fusion (a blow among them: guard.core.aiding.impact)."""
+        """Forget the samples since the last fusion: a blow sets the IMU aside (guard.core.aiding.impact),
+        and those before it are not to be averaged with those after it."""
         self._clear()
 
     def add(self, t_us: int, ax: float, ay: float, rate: float, mag, tilt: float, tilt_rate: float) -> tuple | None:
