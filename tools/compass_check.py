@@ -3,7 +3,8 @@
     python tools/compass_check.py FLIGHT.ulg [FLIGHT.ulg ...]
 
 For each log: the heading of its calibrated compass (vehicle_magnetometer), levelled with PX4's own
-roll and pitch, less PX4's yaw (vehicle_attitude), as guard's heading test sees a compass; on the
+roll and pitch, plus the World Magnetic Model's declination at its first fix on its day, less PX4's
+yaw (vehicle_attitude), as guard's heading test sees a compass; on the
 ground before the motors draw current, and in flight (its range and rms, and its correlation with the
 battery current: the motors' field). Then the same with PX4's learnt body field (EKF2's mag_B states,
 estimator_states 19 to 21: the hard iron it keeps learning in flight) taken out, and guard's
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import sys
 from collections import Counter
 from pathlib import Path
@@ -26,7 +28,9 @@ import numpy as np
 from pyulog import ULog
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from guard.model.samples import ImuSample             # noqa: E402
+from guard.core.geo import WMM_EPOCH, declination_rad  # noqa: E402
+from guard.model.samples import GnssFix, ImuSample    # noqa: E402
+from guard.sources import open_log                   # noqa: E402
 from guard.runtime.replay import replay              # noqa: E402
 
 TOPICS = ("vehicle_magnetometer", "vehicle_attitude", "estimator_states", "battery_status")
@@ -41,12 +45,24 @@ def euler(att) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return roll, pitch, yaw
 
 
-def heading_less_yaw(m: np.ndarray, roll, pitch, yaw) -> np.ndarray:
-    """Degrees, wrapped: the levelled field's heading (FRD, NED yaw) less the autopilot's yaw."""
+def declination(path: str) -> float:
+    """The World Magnetic Model's declination (rad, east positive) at the log's first fix, on its day:
+    what guard adds to a compass's heading (guard.core.aiding.imu.heading)."""
+    source = open_log(path)
+    try:
+        fix = next((s for s in source.samples() if isinstance(s, GnssFix) and s.fix_ok), None)
+    finally:
+        source.close()
+    return 0.0 if fix is None else declination_rad(fix.lat_deg, fix.lon_deg, fix.alt_m, source.date or WMM_EPOCH)
+
+
+def heading_less_yaw(m: np.ndarray, roll, pitch, yaw, dec: float = 0.0) -> np.ndarray:
+    """Degrees, wrapped: the levelled field's heading (FRD, NED yaw) plus the declination `dec` (rad)
+    less the autopilot's yaw."""
     cr, sr, cp, sp = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch)
     xh = cp * m[:, 0] + sp * sr * m[:, 1] + sp * cr * m[:, 2]
     yh = cr * m[:, 1] - sr * m[:, 2]
-    return (np.degrees(np.arctan2(-yh, xh) - yaw) + 180.0) % 360.0 - 180.0
+    return (np.degrees(np.arctan2(-yh, xh) + dec - yaw) + 180.0) % 360.0 - 180.0
 
 
 def at(t_of: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -79,15 +95,16 @@ def check(path: str) -> str:
     roll, pitch, yaw = (a[i] for a in euler(att))
     current = bat["current_a"][at(bat["timestamp"], t)]
     field = np.column_stack([st[f"states[{k}]"] for k in (19, 20, 21)])
-    raw = heading_less_yaw(m, roll, pitch, yaw)
-    learnt = heading_less_yaw(m - field[-1], roll, pitch, yaw)
+    dec = declination(path)
+    raw = heading_less_yaw(m, roll, pitch, yaw, dec)
+    learnt = heading_less_yaw(m - field[-1], roll, pitch, yaw, dec)
     ground, air = current <= FLYING_A, current > FLYING_A
     if not air.any() or not ground.any():
         return f"{path}: skipped, no stretch both on the ground and in flight by its battery current"
     alarms = [Counter(str(a["sensor"]) for a in replay(path, inject=inj)["alarms"])["mag"]
               for inj in (None, without_field(field[-1]))]
     return "\n".join([
-        f"{path}:",
+        f"{path}: (declination {math.degrees(dec):+.1f} deg)",
         f"  compass heading less the autopilot's yaw, on the ground: median {np.median(raw[ground]):+.1f} deg",
         f"  in flight: {raw[air].min():+.1f} to {raw[air].max():+.1f} deg, rms about its mean "
         f"{raw[air].std():.1f} deg, correlation with the current {np.corrcoef(raw[air], current[air])[0, 1]:+.2f}",
