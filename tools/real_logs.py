@@ -131,7 +131,9 @@ def one(job: tuple[str, str | None, tuple[str, ...], tuple[str, ...]]) -> dict:
         return {"log": path, "error": str(e)}
     alarms = Counter(str(a["sensor"]) for a in r["alarms"])
     out = {"log": path, "format": r["format"], "duration_s": r["duration_s"], "alarms": dict(alarms),
-           "n_alarms": sum(alarms.values()), "n_standing": sum(1 for a in r["alarms"] if a["standing"]), "peak_ratio": r["peak_ratio"], "estimate_to_fix_m": r["estimate_to_fix_m"],
+           "n_alarms": sum(alarms.values()),
+           "n_standing": sum(1 for a in r["alarms"] if a["standing"]), "peak_ratio": r["peak_ratio"],
+           "estimate_to_fix_m": r["estimate_to_fix_m"],
            "warnings": [n["text"] for n in r["notices"] if n["level"] == "warning"], "attacks": {},
            "receiver_jump_m": round(span.jump, 2)}
     for spec in attacks:
@@ -220,7 +222,8 @@ def main(argv=None) -> int:
             fixes += gap["fixes"]
             far_fixes += far * gap["fixes"]
             again = f"; {r['n_standing']} a standing alarm again" if r["n_standing"] else ""
-            print(f"{name}: {r['format']}, {r['duration_s']:.0f} s; alarms {r['n_alarms']} ({by}{again}); peaks {peaks}; "
+            print(f"{name}: {r['format']}, {r['duration_s']:.0f} s; alarms {r['n_alarms']} ({by}{again}); "
+                  f"peaks {peaks}; "
                   f"estimate from the fixes {gap['max']:.1f} m at most, over 5 m at {100 * far:.1f} %; "
                   f"the receiver's own largest jump {r['receiver_jump_m']:.2f} m")
     n = sum(1 for r in results if "error" not in r)

@@ -25,6 +25,7 @@ from guard.model.sensors import CHANNELS, RECEIVER, Sensor
 
 
 CALM_RATIO = 0.5        # every test's statistic under this share of its threshold: the filter may learn
+STANDING_GAP_S = 30.0   # s: a latched sensor's alarm this soon after its last one is that one going on
 
 
 class Judge:
@@ -36,6 +37,7 @@ class Judge:
         self.vel_t = -math.inf                      # time of the last GNSS velocity tested
         self.rewind_epochs = 0                      # what the last alarm asks the monitor to undo
         self.ratios: dict[Sensor, float] = {}       # each sensor's latest statistic / threshold, largest channel
+        self.last_alarm: dict[Sensor, tuple[int, bool]] = {}   # sensor -> (time, standing) of its last alarm
 
     @property
     def calm(self) -> bool:
@@ -74,7 +76,7 @@ class Judge:
             if named != sensor:                 # a witness named it: its own offset, not the alarm's
                 offset = self.witnesses.gyro_bias() if named == Sensor.GYRO else self.witnesses.lateral_bias(bw)
             events.append(Alarm(t_us, gnss_index, named, channel, stat[i], thr[i], offset,
-                                self.detector.name, ambiguous, standing=named in health.latched))
+                                self.detector.name, ambiguous, standing=self._standing(named, t_us)))
             if not self.cfg.exclude_on_alarm:
                 continue
             health.exclude(named, t_us, offset)
@@ -91,6 +93,17 @@ class Judge:
                 health.accel_ref = float((oldest if oldest is not None else ekf.x)[BAY])
                 ekf.x[BAY] = health.accel_ref
         return events
+
+    def _standing(self, sensor: Sensor, t_us: int) -> bool:
+        """Whether an alarm on `sensor` now is its standing alarm going on: the sensor is latched (fused
+        again by a re-anchoring, never having agreed) and alarmed within STANDING_GAP_S before. Agreement
+        cannot release a latch (an estimate anchored on the GNSS agrees with it by construction), so an
+        alarm after a longer quiet is a new one."""
+        last_t, _ = self.last_alarm.get(sensor, (None, False))
+        standing = sensor in self.health.latched and last_t is not None and \
+            0 <= t_us - last_t <= STANDING_GAP_S * 1e6
+        self.last_alarm[sensor] = (t_us, standing)
+        return standing
 
     def _readmission(self, sensor, t_us, r, S, hits, ekf, now_us, gnss_index) -> tuple[list[Event], bool]:
         """An excluded sensor's test: re-admitted once it has agreed long enough and no witness holds it."""
@@ -138,8 +151,10 @@ class Judge:
         anchor(ekf, fix, en, gnss_aid.sigma_pos(fix), gnss_aid.sigma_vel(fix))
         self.history.epochs.clear()                 # a rewind goes no further back than the anchor
         self.history.imu_log.clear()
-        # said as a warning once per alarm: again while the same alarm stands, it is the same news
-        again = any(s in self.health.latched for s in RECEIVER if s in self.health.excluded)
+        # said as a warning once per alarm: for a standing alarm going on (each sensor excluded by an alarm
+        # of its own is), it is the same news
+        own = [s for s in RECEIVER if s in self.health.excluded and s not in self.health.with_receiver]
+        again = bool(own) and all(self.last_alarm.get(s, (0, False))[1] for s in own)
         events: list[Event] = [Notice(fix.t_us, "info" if again else "warning", f"GNSS could not be confirmed "
                                       f"or refuted (the estimate +-{sigma:.0f} m without it): re-anchored on it"
                                       f"{' again' if again else ''}, its alarm stands")]

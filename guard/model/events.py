@@ -49,9 +49,10 @@ class Alarm:
     `offset` is the detector's estimate of the shift, in the channel's units (metres for GNSS
     position): it is what a ground station shows as the size of the attack. `ambiguous_with` names
     the other sensors that would leave the same trace (see AMBIGUOUS): the alarm does not guess.
-    `standing`: the sensor's earlier alarm still stands (it was re-anchored on, or a new filter started
-    on it, without its ever agreeing again): this one says the disagreement goes on, not that a new
-    one began (a ramp on a GNSS tested alone alarms again after each re-anchoring).
+    `standing`: the sensor's earlier alarm still stands (it was re-anchored on without its ever
+    agreeing again) and came within guard.core.judge.STANDING_GAP_S: this one says the disagreement
+    goes on, not that a new one began (a ramp on a GNSS tested alone alarms again after each
+    re-anchoring).
     """
 
     t_us: int

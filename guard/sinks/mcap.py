@@ -202,7 +202,8 @@ class McapLog(Sink):
             statistic=_num(ev.statistic), threshold=_num(ev.threshold), offset=_num(ev.offset),
             detector=ev.detector, standing=bool(ev.standing)))
         self._log(ev.t_us, Log.ERROR,
-                  f"ALARM{' (standing, again)' if ev.standing else ''} {ev.sensor}/{ev.channel}: {ev.detector} statistic {ev.statistic:.3g} > threshold "
+                  f"ALARM{' (standing, again)' if ev.standing else ''} "
+                  f"{ev.sensor}/{ev.channel}: {ev.detector} statistic {ev.statistic:.3g} > threshold "
                   f"{ev.threshold:.3g}, offset {ev.offset:+.3g} {UNITS.get(ev.sensor, '')} "
                   f"(GNSS sample {ev.gnss_index})")
         self.sync()

@@ -4,7 +4,8 @@ grd_ratio (NAMED_VALUE_FLOAT) as an onboard computer (component 191).
 - STATUSTEXT CRITICAL when an alarm is raised (sensor, axis, estimated offset, GNSS sample), and
   NOTICE when it clears; an alarm stays latched while the sensor is excluded, so it is sent once;
   a sensor whose alarm stands and alarms again (a ramp on a GNSS tested alone, after each
-  re-anchoring) is "GUARD still ..." at WARNING, at most once per STANDING_EVERY_S for that sensor;
+  re-anchoring) is "GUARD still ..." at WARNING, at most once per STANDING_EVERY_S for that sensor
+  unless its offset is more than twice the largest said for it (an attack that grew is news);
   a core Notice at WARNING goes out at WARNING. Warnings and notices are rate-limited; an alarm never is.
 - A text longer than 50 bytes goes in MAVLink 2 chunks (one id, chunk_seq 0, 1, ...).
 - NAMED_VALUE_FLOAT "grd_ratio": the largest statistic/threshold ratio since the last send.
@@ -13,7 +14,6 @@ The wording of every line is here; the daemon and the terminal print the same li
 
 from __future__ import annotations
 
-import math
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -23,7 +23,8 @@ from guard.sinks.base import Sink
 from guard.sources.link import MavlinkLink, mavlink
 
 STATUSTEXT_PER_S = 4                                    # rate limit of what we send
-STANDING_EVERY_S = 30.0                                 # a standing alarm's repeats: once per this, per sensor
+STANDING_EVERY_S = 30.0                                 # a standing alarm's repeats: once per this, per sensor,
+STANDING_GROWTH = 2.0                                   # or when its offset is this many times the largest said
 
 
 def alarm_text(e: Alarm) -> str:
@@ -44,8 +45,8 @@ def clear_text(e: Cleared) -> str:
 
 class StatusText(Sink):
     """Sends the core's alarms, clearances and warnings on `link` (None: the terminal only), and
-    prints each on `out`. `alarms` counts the alarms sent; `peak` the largest alarm ratio since
-    the last grd_ratio."""
+    prints each on `out`. `alarms` counts the core's alarms (a standing one's repeats too, said or
+    not); `peak` the largest alarm ratio since the last grd_ratio."""
 
     def __init__(self, link: MavlinkLink | None, cfg, out: Callable[[str], None], operator: Callable):
         self.link, self.cfg, self.out, self.operator = link, cfg, out, operator
@@ -57,7 +58,8 @@ class StatusText(Sink):
         self._next_stat = 0.0
         self._sent: list[float] = []
         self._text_id = 0                   # the last long STATUSTEXT's chunk id
-        self._standing: dict[str, int] = {}     # sensor -> when its standing alarm was last said (t_us)
+        self._standing: dict[str, int] = {}     # sensor -> t_us of its last said repeat
+        self._said: dict[str, float] = {}       # sensor -> the largest |offset| said of its alarms
 
     def on_events(self, events) -> None:
         for e in events:
@@ -68,6 +70,7 @@ class StatusText(Sink):
                     self._again(e)
                     continue
                 text = alarm_text(e)
+                self._said[e.sensor] = max(self._said.get(e.sensor, 0.0), abs(e.offset))
                 self.out(f"guard: {text} (t={e.t_us / 1e6:.2f} s, statistic {e.statistic:.1f} > {e.threshold:.1f})")
                 self.statustext(text, "critical")
             elif isinstance(e, Cleared):
@@ -78,16 +81,20 @@ class StatusText(Sink):
                 self.operator(e.text, level=e.level, send=e.level == "warning")
 
     def _again(self, e: Alarm) -> None:
-        """A standing alarm's repeat: said at WARNING, once per STANDING_EVERY_S per sensor; the rest counted."""
-        since = e.t_us - self._standing.get(e.sensor, -math.inf)     # the samples' time: a replay's too
-        if 0 <= since < STANDING_EVERY_S * 1e6:                       # (after a reboot's time jump: said)
+        """A standing alarm's repeat: said at WARNING, once per STANDING_EVERY_S per sensor or when its
+        offset is STANDING_GROWTH times the largest said; the rest counted. Timed by the samples (a
+        replay's too); a time that jumped back (a reboot) says it."""
+        last_t = self._standing.get(e.sensor)
+        recent = last_t is not None and 0 <= e.t_us - last_t < STANDING_EVERY_S * 1e6
+        if recent and abs(e.offset) <= STANDING_GROWTH * self._said.get(e.sensor, 0.0):
             self.skipped["standing_alarm_repeats"] += 1
             return
-        self._standing[e.sensor] = e.t_us
         text = standing_text(e)
-        self.out(f"guard: {text} (t={e.t_us / 1e6:.2f} s, its alarm stands; statistic {e.statistic:.1f} > "
-                 f"{e.threshold:.1f}; said at most every {STANDING_EVERY_S:g} s)")
-        self.statustext(text, "warning")
+        if self.statustext(text, "warning"):        # (a rate-limited one is tried again at the next repeat)
+            self.out(f"guard: {text} (t={e.t_us / 1e6:.2f} s, its alarm stands; statistic {e.statistic:.1f} > "
+                     f"{e.threshold:.1f}; said at most every {STANDING_EVERY_S:g} s)")
+            self._standing[e.sensor] = e.t_us
+            self._said[e.sensor] = max(self._said.get(e.sensor, 0.0), abs(e.offset))
 
     def tick(self, ratio=lambda: 0.0) -> None:
         """Heartbeat and the statistic (`ratio()`, called only when due), when due."""
@@ -102,22 +109,22 @@ class StatusText(Sink):
             ms = int((now - self.t0) * 1000) & 0xFFFFFFFF
             self._send(lambda m: m.named_value_float_send(ms, b"grd_ratio", value))
 
-    def statustext(self, text: str, level: str) -> None:
+    def statustext(self, text: str, level: str) -> bool:
         """Send a STATUSTEXT at `level` ("critical", "warning" or "notice"). Warnings and notices are
-        rate-limited; a CRITICAL alarm never is (it is sent once)."""
+        rate-limited; a CRITICAL alarm never is (it is sent once). Returns whether it went out."""
         critical = level == "critical"
         now = time.monotonic()
         self._sent = [t for t in self._sent if now - t < 1.0]
         if not critical and len(self._sent) >= STATUSTEXT_PER_S:
             self.skipped["statustext_rate_limited"] += 1
-            return
+            return False
         self._sent.append(now)
         severity = {"critical": mavlink.MAV_SEVERITY_CRITICAL, "warning": mavlink.MAV_SEVERITY_WARNING}.get(
             level, mavlink.MAV_SEVERITY_NOTICE)
         data = text.encode()
         if len(data) <= 50:
             self._send(lambda m: m.statustext_send(severity, data))
-            return
+            return True
         # longer: MAVLink 2 chunks (id, chunk_seq), which ground stations join; a chunk shorter than 50
         # bytes ends the text (an empty one if it divides evenly)
         self._text_id = self._text_id % 0xFFFF + 1
@@ -126,6 +133,7 @@ class StatusText(Sink):
             chunks.append(b"")
         for seq, chunk in enumerate(chunks):
             self._send(lambda m: m.statustext_send(severity, chunk, id=self._text_id, chunk_seq=seq))
+        return True
 
     def _send(self, fn) -> None:
         if self.link is not None:

@@ -7,6 +7,7 @@ import pytest
 from guard.config import LinkConfig
 from guard.core.monitor import MonitorConfig
 from guard.model.events import Alarm, Notice
+from guard.model.sensors import Sensor
 from guard.sinks import statustext
 from guard.sinks.statustext import StatusText
 from unit.synthetic import T0_US, drive, of, run
@@ -32,11 +33,19 @@ def test_the_same_disagreement_again_is_marked_standing_and_its_warning_said_onc
     assert all("again" in n.text for n in anchored[1:])
 
 
-def test_a_standing_alarm_is_said_on_the_link_at_most_every_so_often():
-    mon, events = ramp_on_gnss_alone(13)
+def said(events, monkeypatch):
+    """What the link says of `events` (the terminal's lines: it prints what went out), the whole run
+    handed over at once: the per-second limit of the wall clock, which a live link spreads, lifted."""
+    monkeypatch.setattr(statustext, "STATUSTEXT_PER_S", 10 ** 6)
     lines = []
     sink = StatusText(None, LinkConfig(), lines.append, lambda text, level, send: None)
     sink.on_events(events)
+    return lines, sink
+
+
+def test_a_standing_alarm_is_said_on_the_link_at_most_every_so_often(monkeypatch):
+    mon, events = ramp_on_gnss_alone(13)
+    lines, sink = said(events, monkeypatch)
     alarms = of(events, Alarm)
     first, still = [x for x in lines if "GUARD ALARM" in x], [x for x in lines if "GUARD still" in x]
     assert len(first) == 1
@@ -44,3 +53,37 @@ def test_a_standing_alarm_is_said_on_the_link_at_most_every_so_often():
     assert 1 <= len(still) <= span_s // statustext.STANDING_EVERY_S + 1, still
     assert len(still) + sink.skipped["standing_alarm_repeats"] == len(alarms) - 1
     assert sink.alarms == len(alarms)
+
+
+def test_a_new_attack_after_a_quiet_spell_is_a_new_alarm_and_a_grown_one_is_said(monkeypatch):
+    """The ramp stops at 80 s (the GNSS agrees again, its alarm still standing: nothing can clear it),
+    then a 30 m step: at 300 s, long after, it is a new alarm (CRITICAL, its re-anchoring a warning);
+    at 96 s, within STANDING_GAP_S of the last repeat, it goes on from the standing alarm but its
+    size, 30 m against the ramp's metre, is said at once."""
+    def attack(step_at):
+        def offset(t):
+            return (0.0, 0.5 * (min(t, 80.0) - 60.0) if t >= 60.0 else 0.0) if t < step_at else (0.0, 30.0)
+        return run(drive(360.0, yaw=0.4, seed=13, mag=lambda t: False, gnss_offset=offset), AIR)
+
+    _, late = attack(300.0)
+    new = [a for a in of(late, Alarm) if a.t_us >= T0_US + 300e6]
+    assert new and not new[0].standing, new[:1]
+    anchored = [n for n in of(late, Notice) if "re-anchored" in n.text and n.t_us >= new[0].t_us]
+    assert anchored and anchored[0].level == "warning"
+
+    _, soon = attack(96.0)
+    step = [a for a in of(soon, Alarm) if a.t_us >= T0_US + 96e6][0]
+    lines, _ = said(soon, monkeypatch)
+    assert any(f"k={step.gnss_index}" in x and ("GUARD ALARM" in x or "GUARD still" in x) for x in lines), lines
+
+
+def test_a_reboot_s_time_jump_back_says_the_standing_alarm_again(monkeypatch):
+    """Repeats timed by the samples: 100 s said, 110 s held; the autopilot reboots (time from 0 again):
+    5 s said, 10 s held, 36 s said."""
+    def alarm(t_s, standing=True):
+        return Alarm(int(t_s * 1e6), 0, Sensor.GNSS_POS, "north", 20.0, 18.0, 1.0, "cusum", standing=standing)
+    lines, sink = said([alarm(90.0, standing=False), *(alarm(t) for t in (100.0, 110.0, 5.0, 10.0, 36.0))],
+                       monkeypatch)
+    still = [x for x in lines if "GUARD still" in x]
+    assert [x.split("(t=")[1].split(" s")[0] for x in still] == ["100.00", "5.00", "36.00"], still
+    assert sink.skipped["standing_alarm_repeats"] == 2
