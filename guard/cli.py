@@ -57,8 +57,8 @@ def _replay(args) -> int:
               f"{len(alarms)} alarm(s), {first}")
         standing = sum(1 for a in alarms if a["standing"])
         if standing:
-            print(f"  {standing} of the alarms were a standing alarm's sensor disagreeing again (after a "
-                  "re-anchoring or a restart on it)")
+            print(f"  {standing} of the alarms were a standing alarm going on (its sensor re-anchored on and "
+                  "alarming again within 30 s)")
         gap = report["estimate_to_fix_m"]
         if gap["fixes"]:
             print(f"  the estimate from the fixes: {gap['mean']:.1f} m on average, {gap['max']:.1f} m at most, "
