@@ -108,3 +108,28 @@ def test_the_budget_is_a_window_not_a_switch():
     later = [a for a in of(events, Alarm) if a.t_us >= T0_US + 149e6]
     assert later == [], later[:1]
     assert impact.HOLD_S * 50 <= mon.skipped["imu_impact"], mon.skipped
+
+
+def fast_imu(samples, hz=220):
+    """The drive's IMU at `hz` (each 50 Hz sample's reading repeated on the faster clock), GNSS as it was."""
+    out, step = [], int(1e6 / hz)
+    for s in samples:
+        if isinstance(s, ImuSample):
+            out += [dataclasses.replace(s, t_us=s.t_us + k * step) for k in range(int(20_000 / step) + 1)
+                    if k * step < 20_000]
+        else:
+            out.append(s)
+    return out
+
+
+def test_vibration_has_no_mean_and_is_no_blow():
+    """A badly damped IMU at 220 Hz shaken at 80 Hz, 5 g on x (no mean): nothing set aside; the same
+    IMU with a blow of 5 g over 14 ms (3 samples) has it set aside."""
+    def shaken(samples):
+        return [dataclasses.replace(s, acc_x_mps2=s.acc_x_mps2 + 49.0 * math.sin(2 * math.pi * 80.0 * s.t_us / 1e6))
+                if isinstance(s, ImuSample) else s for s in samples]
+    vib = shaken(fast_imu(drive(40.0, yaw=0.7, seed=1)))
+    mon, _ = run(vib)
+    assert "imu_impact" not in mon.skipped, mon.skipped
+    mon, events = run(blown(fast_imu(drive(40.0, yaw=0.7, seed=1)), at_s=30.0))
+    assert mon.skipped["imu_impact"] > 0 and [n for n in of(events, Notice) if "blow at the IMU" in n.text]
