@@ -238,6 +238,9 @@ class Monitor:
                                          f"once the receiver reports {START_H_ACC_M:g} m or HDOP {START_HDOP:g}"))
                 return events
             return events + self._initialise(fix)
+        poor = self.gnss_aid.beyond_cap(fix)
+        if poor:
+            events.append(Notice(fix.t_us, "warning", poor))
         self.ekf.wander(self.gnss_aid.q_pos(fix))
         self._advance(fix.t_us)
         why = diverged(self.ekf)
