@@ -49,6 +49,7 @@ def _replay(args) -> int:
         from guard.sinks.plot import plot
         plot(trace, report, args.plot, truth_beside(args.file))
     if args.report != "-":
+        from guard.core.judge import STANDING_GAP_S
         from guard.sinks.report import SKIPPED, FixGap
         alarms = report["alarms"]
         first = (f"first alarm at GNSS sample {alarms[0]['gnss_index']} ({alarms[0]['sensor']} "
@@ -58,7 +59,7 @@ def _replay(args) -> int:
         standing = sum(1 for a in alarms if a["standing"])
         if standing:
             print(f"  {standing} of the alarms were a standing alarm going on (its sensor re-anchored on and "
-                  "alarming again within 30 s)")
+                  f"alarming again within {STANDING_GAP_S:g} s)")
         gap = report["estimate_to_fix_m"]
         if gap["fixes"]:
             print(f"  the estimate from the fixes: {gap['mean']:.1f} m on average, {gap['max']:.1f} m at most, "

@@ -109,7 +109,8 @@ def check(path: str) -> str:
         f"  in flight: {raw[air].min():+.1f} to {raw[air].max():+.1f} deg, rms about its mean "
         f"{raw[air].std():.1f} deg, correlation with the current {np.corrcoef(raw[air], current[air])[0, 1]:+.2f}",
         f"  the autopilot's learnt body field {[round(float(v), 3) for v in field[-1]]} G taken out: in flight rms "
-        f"{learnt[air].std():.1f} deg, correlation with the current {np.corrcoef(learnt[air], current[air])[0, 1]:+.2f}",
+        f"{learnt[air].std():.1f} deg, correlation with the current "
+        f"{np.corrcoef(learnt[air], current[air])[0, 1]:+.2f}",
         f"  guard's magnetometer alarms: {alarms[0]} as logged, {alarms[1]} with that field taken out"])
 
 

@@ -1,7 +1,8 @@
 """Testing one sensor's innovation, and what follows: an alarm (named by the witnesses), the sensor's
 exclusion and the rewind it owes, or, for an excluded sensor, its re-admission.
 
-The judge owns no data but the time of the last GNSS velocity tested; it reads the detector, the
+The judge owns no data but the time of the last GNSS velocity tested and of each sensor's last alarm
+(whether a new one is a standing alarm going on); it reads the detector, the
 health record, the witnesses and the history it is given, and the filter's state, and never calls
 the monitor back.
 """
@@ -76,7 +77,7 @@ class Judge:
             if named != sensor:                 # a witness named it: its own offset, not the alarm's
                 offset = self.witnesses.gyro_bias() if named == Sensor.GYRO else self.witnesses.lateral_bias(bw)
             events.append(Alarm(t_us, gnss_index, named, channel, stat[i], thr[i], offset,
-                                self.detector.name, ambiguous, standing=self._standing(named, t_us)))
+                                self.detector.name, ambiguous, standing=self.standing(named, t_us)))
             if not self.cfg.exclude_on_alarm:
                 continue
             health.exclude(named, t_us, offset)
@@ -94,7 +95,7 @@ class Judge:
                 ekf.x[BAY] = health.accel_ref
         return events
 
-    def _standing(self, sensor: Sensor, t_us: int) -> bool:
+    def standing(self, sensor: Sensor, t_us: int) -> bool:
         """Whether an alarm on `sensor` now is its standing alarm going on: the sensor is latched (fused
         again by a re-anchoring, never having agreed) and alarmed within STANDING_GAP_S before. Agreement
         cannot release a latch (an estimate anchored on the GNSS agrees with it by construction), so an

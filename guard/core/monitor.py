@@ -21,6 +21,7 @@ v_y = 0 fused with every IMU update.
 
 from __future__ import annotations
 
+import dataclasses
 import datetime
 import math
 from collections import Counter
@@ -31,7 +32,7 @@ import numpy as np
 from guard.core.aiding import Aid
 from guard.core.aiding.compass import NO_COMPASS_S, CompassWatch
 from guard.core.aiding.gnss import START_H_ACC_M, START_HDOP, FreezeWatch, GnssAiding
-from guard.core.aiding.impact import BUDGET_S, HOLD_S, IMPACT_G, WINDOW_S, Impact
+from guard.core.aiding.impact import BUDGET_S, HOLD_S, IMPACT_G, MEAN_S, WINDOW_S, Impact
 from guard.core.aiding.tilt import Tilt
 from guard.core.aiding.imu import Averager, ImuAiding, StreamRate, fuse_rows, heading, level
 from guard.core.anchor import Learnt, diverged, initial_state
@@ -125,6 +126,7 @@ class Monitor:
         self.detector.reset()
         self._heading_unset = False                 # the filter started before the magnetometer spoke
         self._coarse_said = False                   # a fix too coarse to start on: said once per start
+        self._cap_said = False                      # a receiver worse than guard takes its word for: likewise
         self._estimate_owed: tuple[int, int] | None = None   # (t_us, gnss_index) of the alarm's epoch
 
     @property
@@ -195,9 +197,11 @@ class Monitor:
         if kept:
             events.append(Notice(t_us, "warning", f"the {' and '.join(sorted(kept))} alarm stands: a new "
                                  "filter starts on the GNSS"))
+        last_alarm = self.judge.last_alarm
         self._reset()
         self.timebase.reset()
         self.health.latched |= kept
+        self.judge.last_alarm = {s: v for s, v in last_alarm.items() if s in kept}   # a standing alarm goes on
         return events
 
     def _vehicle(self, v: VehicleType) -> list[Event]:
@@ -238,8 +242,9 @@ class Monitor:
                                          f"once the receiver reports {START_H_ACC_M:g} m or HDOP {START_HDOP:g}"))
                 return events
             return events + self._initialise(fix)
-        poor = self.gnss_aid.beyond_cap(fix)
+        poor = None if self._cap_said else self.gnss_aid.beyond_cap(fix)
         if poor:
+            self._cap_said = True
             events.append(Notice(fix.t_us, "warning", poor))
         self.ekf.wander(self.gnss_aid.q_pos(fix))
         self._advance(fix.t_us)
@@ -289,6 +294,7 @@ class Monitor:
         alarm = self.freeze.check(fix, math.hypot(self.ekf.x[VX], self.ekf.x[VY]), self.gnss_index)
         if alarm is None or Sensor.GNSS_POS in self.health.excluded:
             return []
+        alarm = dataclasses.replace(alarm, standing=self.judge.standing(Sensor.GNSS_POS, fix.t_us))
         if self.cfg.exclude_on_alarm:
             self.health.exclude(Sensor.GNSS_POS, fix.t_us)
         return [alarm]
@@ -369,13 +375,15 @@ class Monitor:
                 self.history.blow(s.t_us, dv_var)
             if not self.impact.said:
                 self.impact.said = True
-                events.append(Notice(s.t_us, "info", f"a blow at the IMU ({self.impact.peak_g:.1f} g: a landing, a "
-                                     f"crash, a kerb): its readings set aside for {HOLD_S:g} s after each reading over "
-                                     f"{IMPACT_G:g} g, the GNSS holding the estimate (counted as imu_impact)"))
+                events.append(Notice(s.t_us, "info", f"a blow at the IMU ({self.impact.peak_g:.1f} g over "
+                                     f"{MEAN_S * 1e3:g} ms: a landing, a crash, a kerb): its readings set aside "
+                                     f"for {HOLD_S:g} s after each such mean over {IMPACT_G:g} g, the GNSS holding "
+                                     "the estimate (counted as imu_impact)"))
         elif self.impact.overrun and not self.impact.overrun_said:
             self.impact.overrun_said = True
-            events.append(Notice(s.t_us, "warning", f"the IMU read over {IMPACT_G:g} g for more than {BUDGET_S:g} s "
-                                 f"of {WINDOW_S:g} s: not blows; it is used and tested as it reads"))
+            events.append(Notice(s.t_us, "warning", f"the IMU's {MEAN_S * 1e3:g} ms means passed {IMPACT_G:g} g for "
+                                 f"more than {BUDGET_S:g} s of {WINDOW_S:g} s: not blows; it is used and tested as "
+                                 "it reads"))
         return aside
 
     def _compass(self, t_us: int, heard: bool) -> list[Event]:

@@ -70,10 +70,13 @@ class StatusText(Sink):
                     self._again(e)
                     continue
                 text = alarm_text(e)
-                self._said[e.sensor] = max(self._said.get(e.sensor, 0.0), abs(e.offset))
+                self._said[e.sensor] = abs(e.offset)        # a new alarm: its repeats are measured from it
+                self._standing[e.sensor] = e.t_us
                 self.out(f"guard: {text} (t={e.t_us / 1e6:.2f} s, statistic {e.statistic:.1f} > {e.threshold:.1f})")
                 self.statustext(text, "critical")
             elif isinstance(e, Cleared):
+                self._said.pop(e.sensor, None)
+                self._standing.pop(e.sensor, None)
                 text = clear_text(e)
                 self.out(f"guard: {text}")
                 self.statustext(text, "notice")
@@ -90,9 +93,11 @@ class StatusText(Sink):
             self.skipped["standing_alarm_repeats"] += 1
             return
         text = standing_text(e)
-        if self.statustext(text, "warning"):        # (a rate-limited one is tried again at the next repeat)
-            self.out(f"guard: {text} (t={e.t_us / 1e6:.2f} s, its alarm stands; statistic {e.statistic:.1f} > "
-                     f"{e.threshold:.1f}; said at most every {STANDING_EVERY_S:g} s)")
+        sent = self.statustext(text, "warning")     # a rate-limited one is tried again at the next repeat
+        self.out(f"guard: {text} (t={e.t_us / 1e6:.2f} s, its alarm stands; statistic {e.statistic:.1f} > "
+                 f"{e.threshold:.1f}; said at most every {STANDING_EVERY_S:g} s"
+                 f"{'' if sent else '; not sent: rate limit'})")
+        if sent:
             self._standing[e.sensor] = e.t_us
             self._said[e.sensor] = max(self._said.get(e.sensor, 0.0), abs(e.offset))
 

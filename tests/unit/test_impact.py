@@ -111,14 +111,18 @@ def test_the_budget_is_a_window_not_a_switch():
 
 
 def fast_imu(samples, hz=220):
-    """The drive's IMU at `hz` (each 50 Hz sample's reading repeated on the faster clock), GNSS as it was."""
-    out, step = [], int(1e6 / hz)
-    for s in samples:
-        if isinstance(s, ImuSample):
-            out += [dataclasses.replace(s, t_us=s.t_us + k * step) for k in range(int(20_000 / step) + 1)
-                    if k * step < 20_000]
-        else:
+    """The drive's IMU on one continuous `hz` clock (each sample's reading that of the latest 50 Hz
+    sample), GNSS as it was."""
+    out, step, t = [], 1e6 / hz, None
+    for s, nxt in zip(samples, samples[1:] + [None]):
+        if not isinstance(s, ImuSample):
             out.append(s)
+            continue
+        t = s.t_us if t is None else t
+        end = nxt.t_us if nxt is not None else s.t_us + 20_000
+        while t < end:
+            out.append(dataclasses.replace(s, t_us=int(round(t))))
+            t += step
     return out
 
 

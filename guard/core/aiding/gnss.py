@@ -55,26 +55,26 @@ class GnssAiding:
 
     def __init__(self, f: FilterConfig):
         self.f = f
-        self._cap_said = False
 
     def beyond_cap(self, fix: GnssFix) -> str | None:
-        """What to say, once, of the first fix whose receiver calls itself worse than guard takes a
-        receiver's word for (ACC_CAP times the floors): its tests then assume the cap, and a receiver
-        that poor may alarm where one that knows it is would not (None: nothing to say)."""
+        """What to say of a fix whose receiver calls itself worse than guard takes a receiver's word
+        for (ACC_CAP times the floors; its HDOP, for one that reports no accuracy): its tests then
+        assume the cap, and a receiver that poor may alarm where one that knows it is would not
+        (None: nothing to say). The monitor says it once per filter."""
         f, parts = self.f, []
-        if self._cap_said:
-            return None
-        if fix.h_acc_m and f.gnss_pos_acc_fraction * fix.h_acc_m > ACC_CAP * f.gnss_pos_sigma_m:
-            parts.append(f"its position good to {fix.h_acc_m:.1f} m only")
-        if fix.vel_acc_mps and fix.vel_acc_mps > ACC_CAP * f.gnss_vel_sigma_mps:
-            parts.append(f"its velocity to {fix.vel_acc_mps:.2f} m/s only")
+        cap_pos = ACC_CAP * f.gnss_pos_sigma_m
+        if fix.h_acc_m and f.gnss_pos_acc_fraction * fix.h_acc_m > cap_pos:
+            parts.append(f"its position good to {fix.h_acc_m:.1f} m only (guard takes up to "
+                         f"{cap_pos / f.gnss_pos_acc_fraction:g} m)")
+        elif not fix.h_acc_m and fix.hdop and f.gnss_pos_unreported_m * fix.hdop > cap_pos:
+            parts.append(f"an HDOP of {fix.hdop:.1f} (guard takes up to {cap_pos / f.gnss_pos_unreported_m:g})")
+        if f.use_gnss_velocity and fix.vel_acc_mps and fix.vel_acc_mps > ACC_CAP * f.gnss_vel_sigma_mps:
+            parts.append(f"its velocity good to {fix.vel_acc_mps:.2f} m/s only (guard takes up to "
+                         f"{ACC_CAP * f.gnss_vel_sigma_mps:g} m/s)")
         if not parts:
             return None
-        self._cap_said = True
-        return (f"the receiver calls {' and '.join(parts)}: guard takes a receiver's word up to "
-                f"{ACC_CAP * f.gnss_pos_sigma_m / f.gnss_pos_acc_fraction:.1f} m and "
-                f"{ACC_CAP * f.gnss_vel_sigma_mps:.2f} m/s (a spoofer could claim any error to blind the tests) "
-                "and tests it as if that good: a receiver this poor may raise alarms")
+        return (f"the receiver reports {' and '.join(parts)}: guard tests it at those figures (a spoofer could "
+                "claim any error to blind the tests), and a receiver this poor may raise alarms")
 
     def sigma_pos(self, fix: GnssFix) -> float:
         f = self.f

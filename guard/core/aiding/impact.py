@@ -8,11 +8,13 @@ so the levelled accelerometers, the yaw rate and the compass's heading are all o
 public real flights replayed by `tools/real_logs.py`, the landings and crashes whose IMU read more
 than 3 g raised 16 alarms on accelerometer, gyro, compass and GNSS velocity within the 3 s after.
 
-So a specific force beyond IMPACT_G, as a mean over MEAN_S (15 ms: a vibration has no mean, and on a
-real 220 Hz PX4 quad with a badly damped IMU, 1,128 single samples of 13,511 passed 3 g in a minute,
-their 15 ms means 61; an IMU logged at 50 Hz or slower is its own mean), sets the IMU aside until
-HOLD_S after the last such sample: nothing is fused or tested, the GNSS holds the estimate, and the velocity's uncertainty grows
-by what the blow may have done, ((|f| - g) T)^2 per sample (`NavEKF.blow`). A flying or driving
+So a specific force beyond IMPACT_G, as a mean over MEAN_S (15 ms: a vibration faster than about
+60 Hz averages out, and on a real 220 Hz PX4 quad with a badly damped IMU, 1,128 single samples of
+13,511 passed 3 g in a minute, their 15 ms means 61; an IMU logged at 50 Hz or slower is its own
+mean), sets the IMU aside until HOLD_S after the last such mean: nothing is fused or tested, the
+GNSS holds the estimate, and the velocity's uncertainty grows by what the blow may have done,
+((|f| - g) T)^2 per sample, T its interval and, at a blow's first mean, the samples it rose through
+(`NavEKF.blow`). A flying or driving
 vehicle's specific force stays well under it: a multicopter's thrust is about twice its weight, a
 car corners and brakes at under 1 g.
 
@@ -61,14 +63,17 @@ class Impact:
         if self._aside_s + dt > BUDGET_S:           # the window's budget is spent: tested as it reads
             self.overrun, self.until = True, None
             return False, 0.0
+        span = 0.0
         if blow:
+            if self.until is None or s.t_us > self.until:   # a new blow: the samples its mean rose through
+                span = (s.t_us - self._recent[0][0]) / 1e6   # went by unset aside; their share is added too
             self.until = s.t_us + int(HOLD_S * 1e6)
             self.peak_g = max(self.peak_g, f / G)
         if self.until is None or s.t_us > self.until:
             return False, 0.0
         self._aside.append((s.t_us, dt))
         self._aside_s += dt
-        return True, ((f - G) * dt) ** 2 if blow else 0.0
+        return True, ((f - G) * (dt + span)) ** 2 if blow else 0.0
 
     def _mean_force(self, s: ImuSample) -> float:
         """|mean specific force| over the samples within MEAN_S up to this one (m/s^2); 0 until the
