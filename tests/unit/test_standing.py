@@ -89,3 +89,16 @@ def test_a_reboot_s_time_jump_back_says_the_standing_alarm_again(monkeypatch):
     still = [x for x in lines if "GUARD still" in x]
     assert [x.split("(t=")[1].split(" s")[0] for x in still] == ["100.00", "40.00"], still
     assert sink.skipped["standing_alarm_repeats"] == 3
+
+
+def test_a_standing_alarm_goes_on_across_a_restart():
+    """The ramp goes on through a 12 s silence (a restart of the filter, the GNSS alarm carried): the
+    first alarm after it, within 30 s of the last, is still that alarm going on."""
+    samples = drive(180.0, yaw=0.4, seed=13, mag=lambda t: False,
+                    gnss_offset=lambda t: (0.0, 0.5 * (t - 60.0) if t >= 60.0 else 0.0))
+    quiet = [s for s in samples if not T0_US + 100e6 <= s.t_us < T0_US + 112e6]
+    _, events = run(quiet, AIR)
+    assert [n for n in of(events, Notice) if "re-initialised" in n.text]
+    before = [a for a in of(events, Alarm) if a.t_us < T0_US + 100e6]
+    after = [a for a in of(events, Alarm) if a.t_us >= T0_US + 112e6]
+    assert after and after[0].t_us - before[-1].t_us <= 30e6 and after[0].standing, (before[-1:], after[:1])
