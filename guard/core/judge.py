@@ -2,9 +2,8 @@
 exclusion and the rewind it owes, or, for an excluded sensor, its re-admission.
 
 The judge owns no data but the time of the last GNSS velocity tested and of each sensor's last alarm
-(whether a new one is a standing alarm going on); it reads the detector, the
-health record, the witnesses and the history it is given, and the filter's state, and never calls
-the monitor back.
+(whether a new one is a standing alarm going on); it reads the detector, the health record, the
+witnesses and the history it is given, and the filter's state, and never calls the monitor back.
 """
 
 from __future__ import annotations

@@ -14,9 +14,8 @@ So a specific force beyond IMPACT_G, as a mean over MEAN_S (15 ms: a vibration f
 mean), sets the IMU aside until HOLD_S after the last such mean: nothing is fused or tested, the
 GNSS holds the estimate, and the velocity's uncertainty grows by what the blow may have done,
 ((|f| - g) T)^2 per sample, T its interval and, at a blow's first mean, the samples it rose through
-(`NavEKF.blow`). A flying or driving
-vehicle's specific force stays well under it: a multicopter's thrust is about twice its weight, a
-car corners and brakes at under 1 g.
+(`NavEKF.blow`). A flying or driving vehicle's specific force stays well under it: a multicopter's
+thrust is about twice its weight, a car corners and brakes at under 1 g.
 
 An IMU attack cannot hide behind it for long: blows are brief, and no more than BUDGET_S of any
 WINDOW_S seconds is set aside; beyond that the IMU is used and tested as it comes (a WARNING says so
@@ -35,7 +34,7 @@ from guard.model.samples import ImuSample
 G = 9.80665
 IMPACT_G = 3.0          # |specific force| beyond this many g is a blow, not a manoeuvre ...
 MEAN_S = 0.015          # s: ... as a mean over this long (under a 50 Hz IMU's interval)
-HOLD_S = 0.5            # s: the IMU is set aside this long after the last such sample
+HOLD_S = 0.5            # s: the IMU is set aside this long after the last such mean
 WINDOW_S = 10.0         # s ...
 BUDGET_S = 2.0          # ... of which at most this much is set aside: more is not a blow
 
