@@ -51,6 +51,7 @@ from guard.model.samples import Attitude, GnssFix, ImuSample, VehicleType
 from guard.model.sensors import CHANNELS, RECEIVER, Sensor
 
 REWIND_S = 20.0        # s of filter history kept to undo what a GNSS attack fed the filter before its alarm
+CAP_FIXES = 5          # fixes in a row whose receiver calls itself worse than guard takes: then said
 
 
 @dataclass(frozen=True)
@@ -126,7 +127,8 @@ class Monitor:
         self.detector.reset()
         self._heading_unset = False                 # the filter started before the magnetometer spoke
         self._coarse_said = False                   # a fix too coarse to start on: said once per start
-        self._cap_said = False                      # a receiver worse than guard takes its word for: likewise
+        self._cap_said = False                      # a receiver worse than guard takes its word for: likewise,
+        self._cap_run = 0                           # once it has said so CAP_FIXES fixes in a row
         self._estimate_owed: tuple[int, int] | None = None   # (t_us, gnss_index) of the alarm's epoch
 
     @property
@@ -243,7 +245,8 @@ class Monitor:
                 return events
             return events + self._initialise(fix)
         poor = None if self._cap_said else self.gnss_aid.beyond_cap(fix)
-        if poor:
+        self._cap_run = self._cap_run + 1 if poor else 0
+        if poor and self._cap_run >= CAP_FIXES:     # a receiver that says so for a while, not one odd fix
             self._cap_said = True
             events.append(Notice(fix.t_us, "warning", poor))
         self.ekf.wander(self.gnss_aid.q_pos(fix))

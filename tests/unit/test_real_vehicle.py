@@ -73,6 +73,16 @@ def test_a_receiver_that_calls_itself_worse_than_guard_takes_its_word_is_told_on
         assert len(told) == 1 and told[0].level == "warning" and said in told[0].text, [n.text for n in told]
 
 
+def test_one_odd_fix_beyond_the_cap_is_not_worth_a_warning():
+    """A single fix whose receiver calls its velocity good to 1.8 m/s (a crash's, a moment's): nothing
+    said; five in a row are (the test above)."""
+    samples = [dataclasses.replace(s, vel_acc_mps=1.8) if isinstance(s, GnssFix) and
+               T0_US + 10e6 <= s.t_us < T0_US + 10.1e6 else s for s in drive(30.0, seed=4)]
+    assert sum(isinstance(s, GnssFix) and s.vel_acc_mps == 1.8 for s in samples) == 1
+    mon, events = run(samples)
+    assert not [n for n in of(events, Notice) if "guard takes up to" in n.text]
+
+
 def test_the_reported_accuracy_is_bounded_below_by_the_floor():
     """A receiver that claims 1 cm/s while its noise is 0.03 m/s is held to the floor (0.06 m/s)."""
     mon, events = run(drive(300.0, seed=5, vel_acc=0.01))
