@@ -27,16 +27,11 @@ STANDING_EVERY_S = 30.0                                 # a standing alarm's rep
 STANDING_GROWTH = 2.0                                   # or when its offset is this many times the largest said
 
 
-def alarm_text(e: Alarm) -> str:
-    """At most 50 characters, readable on a ground station: sensor(s), axis, offset, GNSS sample."""
+def alarm_text(e: Alarm, word: str = "ALARM") -> str:
+    """At most 50 characters, readable on a ground station: sensor(s), axis, offset, GNSS sample.
+    `word` "still": a standing alarm's repeat (the disagreement goes on)."""
     sensors = "|".join((e.sensor, *e.ambiguous_with))     # "mag|gyro": either, the physics cannot tell here
-    return f"GUARD ALARM {sensors} {e.channel} {e.offset:+.3g}{UNITS[e.sensor]} k={e.gnss_index}"[:50]
-
-
-def standing_text(e: Alarm) -> str:
-    """A standing alarm's repeat: the disagreement goes on."""
-    sensors = "|".join((e.sensor, *e.ambiguous_with))
-    return f"GUARD still {sensors} {e.channel} {e.offset:+.3g}{UNITS[e.sensor]} k={e.gnss_index}"[:50]
+    return f"GUARD {word} {sensors} {e.channel} {e.offset:+.3g}{UNITS[e.sensor]} k={e.gnss_index}"[:50]
 
 
 def clear_text(e: Cleared) -> str:
@@ -92,7 +87,7 @@ class StatusText(Sink):
         if recent and abs(e.offset) <= STANDING_GROWTH * self._said.get(e.sensor, 0.0):
             self.skipped["standing_alarm_repeats"] += 1
             return
-        text = standing_text(e)
+        text = alarm_text(e, "still")
         sent = self.statustext(text, "warning")     # a rate-limited one is tried again at the next repeat
         self.out(f"guard: {text} (t={e.t_us / 1e6:.2f} s, its alarm stands; statistic {e.statistic:.1f} > "
                  f"{e.threshold:.1f}; said at most every {STANDING_EVERY_S:g} s"
