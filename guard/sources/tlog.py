@@ -10,6 +10,7 @@ import dataclasses
 import datetime
 import mmap
 import os
+from collections import Counter
 from collections.abc import Iterator
 
 from guard.errors import SourceError
@@ -54,6 +55,8 @@ class TlogReader(LogSource):
         self.last_time_us: int | None = None
         self._clock: tuple[int, float] | None = None     # (t0, rate): the time stamps rescaled (guard.sources.clock)
         if peek:                # UTC from the start (a no-fix GNSS message has no time to learn it from)
+            if system_id:
+                self.system_id = system_id = self._gnss_system(system_id)
             probe = TlogReader(path, system_id, peek=False)
             for n, _ in enumerate(probe.samples()):
                 if probe.utc_offset_us is not None or n >= self.PEEK_SAMPLES:
@@ -67,6 +70,25 @@ class TlogReader(LogSource):
 
     def close(self) -> None:
         self._file.close()
+
+    def _gnss_system(self, wanted: int) -> int:
+        """The system to read: `wanted`, unless it sends no GPS_RAW_INT in this log and another does (an
+        autopilot whose SYSID_THISMAV is not 1; a log of several vehicles): then the one that sends the
+        most, and that is said. A tlog is read after the flight, and a log of nothing is no answer."""
+        if self.size == 0:
+            return wanted
+        senders: Counter[int] = Counter()
+        with mmap.mmap(self._file.fileno(), 0, access=mmap.ACCESS_READ) as buf:
+            for msg in TlogReader(self.path, 0, peek=False)._frames(buf, GNSS_ONLY):
+                senders[msg.get_srcSystem()] += 1
+        if not senders or senders[wanted]:
+            return wanted
+        chosen, n = senders.most_common(1)[0]
+        others = sorted(s for s in senders if s != chosen)
+        self.notes.append(f"system {wanted} sends no GPS_RAW_INT in this log: reading system {chosen}, which sends "
+                          f"{n}" + (f" (also sending: {', '.join(map(str, others))})" if others else "")
+                          + "; --system-id chooses")
+        return chosen
 
     def track(self) -> Iterator[tuple[int, float, float, float | None, float | None]]:
         """(t_us, lat, lon, v_n, v_e) of every 3D fix (v None: none sent), GPS_RAW_INT alone decoded."""

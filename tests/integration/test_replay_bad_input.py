@@ -320,26 +320,52 @@ def test_cli_report_and_plot_files(paper, tmp_path):
     assert "400" in p.stdout          # the one-line summary names the first alarm's GNSS sample
 
 
-def test_cli_replay_of_another_system_id_says_how_to_read_it(paper, tmp_path):
-    """A tlog from an autopilot with system id 7: replayed as is, nothing is read and the CLI says
-    why; with --system-id 7 (or 0, every system) it is read whole and the attack is found."""
-    enc = mavlink.MAVLink(None, srcSystem=7, srcComponent=1)
-    out = bytearray()
-    for f in paper[2]:
-        msg = enc.decode(bytearray(f.frame))
-        out += struct.pack(">Q", f.prefix) + msg.pack(enc)
-    path = write(tmp_path, "sys7.tlog", bytes(out))
-    for extra in ((), ("--report", "-")):
-        p = guard_cli("replay", path, *extra, cwd=tmp_path)
-        assert p.returncode == 1 and p.stdout == "", p.stdout
-        assert "no GNSS sample could be read" in p.stderr and "other_system" in p.stderr \
-            and "--system-id 0" in p.stderr, p.stderr
-    for sid in ("7", "0"):
-        p = guard_cli("replay", path, "--system-id", sid, "--report", "-", cwd=tmp_path)
+def as_system(frames, sid: int) -> bytes:
+    """The tlog's frames re-sent by system `sid`."""
+    enc, out = mavlink.MAVLink(None, srcSystem=sid, srcComponent=1), bytearray()
+    for f in frames:
+        out += struct.pack(">Q", f.prefix) + enc.decode(bytearray(f.frame)).pack(enc)
+    return bytes(out)
+
+
+def test_a_tlog_of_another_system_id_is_read_and_says_so(paper, tmp_path):
+    """A tlog from an autopilot with system id 7 (SYSID_THISMAV is not always 1) beside a ground
+    station's heartbeats: system 1 sends no GPS_RAW_INT in it, so the one that does is read whole,
+    the attack found, and the report says which system was read and how to choose; --system-id 7 and
+    0 (every system) read the same without a word."""
+    gcs = mavlink.MAVLink(None, srcSystem=255, srcComponent=190)
+    hb = gcs.heartbeat_encode(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0).pack(gcs)
+    path = write(tmp_path, "sys7.tlog", struct.pack(">Q", paper[2][0].prefix) + hb + as_system(paper[2], 7))
+    for extra in ((), ("--system-id", "7"), ("--system-id", "0")):
+        p = guard_cli("replay", path, *extra, "--report", "-", cwd=tmp_path)
+        assert p.returncode == 0, p.stderr
         report = json.loads(p.stdout)
-        assert report["gnss_samples"] == 801 and report["alarms"][0]["gnss_index"] == 400, sid
+        assert report["gnss_samples"] == 801 and report["alarms"][0]["gnss_index"] == 400, extra
+        said = [n for n in report["notes"] if "GPS_RAW_INT" in n]
+        if extra:
+            assert not said, (extra, said)
+        else:
+            assert len(said) == 1 and "reading system 7" in said[0] and "--system-id" in said[0], said
+    p = guard_cli("replay", path, cwd=tmp_path)          # the replay's own lines say it too
+    assert "system 1 sends no GPS_RAW_INT" in p.stdout, p.stdout
     p = guard_cli("replay", path, "--system-id", "300", cwd=tmp_path)
     assert p.returncode != 0 and "--system-id" in p.stderr and "Traceback" not in p.stderr, p.stderr
+
+
+def test_a_tlog_of_two_vehicles_reads_the_one_asked_for(paper, tmp_path):
+    """Two systems both sending fixes, frame by frame: the one asked for (link.system_id, 1 by
+    default) is read, the other's frames are counted as skipped, and no choice is said."""
+    frames = paper[2]
+    mixed = bytearray()
+    for f, g in zip(frames, split(as_system(frames, 3))):
+        mixed += struct.pack(">Q", f.prefix) + f.frame + struct.pack(">Q", g.prefix) + g.frame
+    path = write(tmp_path, "two.tlog", bytes(mixed))
+    for extra in ((), ("--system-id", "3")):
+        p = guard_cli("replay", path, *extra, "--report", "-", cwd=tmp_path)
+        report = json.loads(p.stdout)
+        assert report["gnss_samples"] == 801 and report["alarms"][0]["gnss_index"] == 400, extra
+        assert report["skipped"]["other_system"] >= 801, report["skipped"]
+        assert not [n for n in report["notes"] if "GPS_RAW_INT" in n], report["notes"]
 
 
 def test_a_receiver_without_a_fix_at_the_start_is_reported(tmp_path):
