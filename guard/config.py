@@ -121,6 +121,8 @@ def _check(cfg: Config, where: str) -> None:
         "can.time_source": (cfg.can.time_source not in ("message", "receive"), "must be \"message\" or \"receive\""),
         "monitor.readmit_s": (cfg.monitor.readmit_s <= 0, "must be > 0"),
         "filter.gnss_delay_s": (flt.gnss_delay_s > 1.0, "must be at most 1 s (receivers lag 0.05 to 0.25 s)"),
+        "filter.gnss_latency_sigma_s": (not 0 <= flt.gnss_latency_sigma_s <= 1.0, "must be within 0..1 s"),
+        "filter.mag_offset_per_turn_rad": (not 0 <= flt.mag_offset_per_turn_rad <= 0.5, "must be within 0..0.5 rad"),
         "monitor.vehicle": (cfg.monitor.vehicle not in ("auto", "ground", "air"),
                             "must be \"auto\", \"ground\" or \"air\""),
         # values that would switch detection off, or flood the disk

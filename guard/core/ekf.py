@@ -87,6 +87,11 @@ class FilterConfig:
                                       # The attitude is carried to each IMU sample by the gyro (guard.core.aiding.tilt),
                                       # but the leak stays: it also covers the autopilot's own tilt error in a
                                       # manoeuvre (at 0.05 the 24 external real flights raised 112 alarms against 98)
+    gnss_latency_sigma_s: float = 0.0   # off. How far the receiver's latency is unknown: a fix's velocity is the
+                                      # vehicle's of up to this long before it, so (this * |a|)^2, |a| the estimated
+                                      # horizontal acceleration, joins its R (guard.core.aiding.gnss). Measured, not
+                                      # taken: 0.2 quiets hard-flown real copters (README), but catches the
+                                      # simulator's accelerometer biases at 2.0 to 2.4 s instead of 1.7 to 2.0
     gnss_delay_s: float = 0.0         # the receiver's latency: a fix is compared with the state this long before it
     gyro_sigma_radps: float = 0.01    # the floor: the gyro's own noise, measured from its samples, when larger
     accel_sigma_mps2: float = 0.15    # likewise (vibration: 0.25 to 0.66 m/s^2 in two real copter flights at 25 Hz)
@@ -107,6 +112,12 @@ class FilterConfig:
     q_accel_bias_mps2: float = 1e-3
     q_accel_bias_air_mps2: float = 0.01   # a vehicle that tilts: its levelled accelerometers carry the attitude's
                                       # error times g (1 degree: 0.17 m/s^2), which moves as it manoeuvres
+    mag_offset_per_turn_rad: float = 0.0   # off. A compass's error depends on its heading (a hard iron left over by
+                                      # its calibration turns it by B sin + C cos of the heading, a ship's deviation
+                                      # curve), so a turn moves the learnt offset b_psi: its variance grows by this^2
+                                      # per radian turned. Measured, not taken: 0.06 quiets real copters' compasses
+                                      # (README), but on the simulator a gyro bias is then caught at 2.2 to 5 s
+                                      # instead of 1.4 to 1.7, a 0.01 G/s magnetometer ramp at 25 s instead of 2 to 4
     q_mag_offset_rad: float = 3e-4    # the magnetometer's heading offset, rad/sqrt(s): 0.4 degree in 10 minutes
     q_slip_rad_per_mps2: float = 1e-4   # k_s, the wheels' slip (rad per m/s^2 of lateral acceleration),
                                       # per sqrt(s): 0.0025 in 10 minutes (a change of surface)
@@ -176,6 +187,8 @@ class NavEKF:
         # P = F P Fᵀ + Q,  Q = q T
         self.P = F @ self.P @ F.T
         self.P[self._diag] += self.q * T
+        if self.q[BM] > 0.0 and self.cfg.mag_offset_per_turn_rad:     # b_psi moves with the heading turned
+            self.P[BM, BM] += self.cfg.mag_offset_per_turn_rad ** 2 * abs(w) * T
 
     def set_heading(self, theta: float) -> None:
         """Start the heading over at theta (the magnetometer's first reading), the ground velocity kept:

@@ -455,3 +455,44 @@ def test_an_air_vehicle_yaws_faster_than_a_car_and_a_held_heading_stays_held():
     ekf.hold_heading()
     ekf.tilting(True)
     assert ekf.q[W] == 0.0
+
+
+# -- the two knobs measured and left off (FilterConfig) ---------------------------------------------
+def test_mag_offset_per_turn_grows_b_psi_with_the_angle_turned_only():
+    """mag_offset_per_turn_rad: b_psi's variance grows by its square per radian turned, whatever the
+    step; nothing while the heading holds, nothing when off (the default), nothing on GNSS alone."""
+    x0 = np.zeros(N_STATES)
+    x0[W] = 0.5
+    per = 0.06
+    grown = []
+    for steps in (1, 10):
+        on, off = NavEKF(FilterConfig(mag_offset_per_turn_rad=per), x0), NavEKF(FilterConfig(), x0)
+        for ekf in (on, off):
+            for _ in range(steps):
+                ekf.predict(1.0 / steps)
+        grown.append(on.P[BM, BM] - off.P[BM, BM])
+        np.testing.assert_allclose(np.delete(np.delete(on.P, BM, 0), BM, 1),
+                                   np.delete(np.delete(off.P, BM, 0), BM, 1), atol=1e-12)
+    np.testing.assert_allclose(grown, per ** 2 * 0.5 * 1.0, rtol=0.05)     # 0.5 rad turned, in any steps
+    still = np.zeros(N_STATES)
+    on, off = NavEKF(FilterConfig(mag_offset_per_turn_rad=per), still), NavEKF(FilterConfig(), still)
+    on.predict(1.0), off.predict(1.0)
+    assert on.P[BM, BM] == pytest.approx(off.P[BM, BM])
+    held = NavEKF(FilterConfig(mag_offset_per_turn_rad=per), x0)
+    held.hold_heading()
+    held.predict(1.0)
+    assert held.P[BM, BM] == 0.0
+
+
+def test_gnss_latency_sigma_widens_the_velocity_test_by_the_acceleration():
+    """gnss_latency_sigma_s: (sigma |a|)^2 joins the velocity's R, |a| the state's horizontal
+    acceleration; the position's R and an unaccelerated vehicle's are untouched."""
+    from guard.core.aiding.gnss import GnssAiding
+    from guard.model.samples import GnssFix
+    fix = GnssFix(0, True, 0.0, 0.0, 0.0, 1.0, 2.0, 1.0, 0.2)
+    x = np.zeros(N_STATES)
+    x[AX], x[AY] = 3.0, 4.0
+    off, on = GnssAiding(FilterConfig()), GnssAiding(FilterConfig(gnss_latency_sigma_s=0.2))
+    assert on.velocity(fix, x).R[0, 0] == pytest.approx(off.velocity(fix, x).R[0, 0] + (0.2 * 5.0) ** 2)
+    assert on.position(fix, (0.0, 0.0), x).R[0, 0] == off.position(fix, (0.0, 0.0), x).R[0, 0]
+    assert on.velocity(fix, np.zeros(N_STATES)).R[0, 0] == off.velocity(fix, np.zeros(N_STATES)).R[0, 0]

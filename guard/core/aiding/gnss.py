@@ -23,7 +23,7 @@ import math
 import numpy as np
 
 from guard.core.aiding import Aid
-from guard.core.ekf import N_STATES, TH, VX, VY, X, Y, FilterConfig
+from guard.core.ekf import AX, AY, N_STATES, TH, VX, VY, X, Y, FilterConfig
 from guard.model.events import Alarm
 from guard.model.samples import GnssFix
 from guard.model.sensors import Sensor
@@ -115,7 +115,10 @@ class GnssAiding:
 
     def velocity(self, fix: GnssFix, x: np.ndarray) -> Aid:
         hx, H = gnss_velocity_model(x)
-        return Aid(np.array([fix.vel_e_mps, fix.vel_n_mps]), hx, H, np.eye(2) * self.sigma_vel(fix) ** 2)
+        # a latency known to within gnss_latency_sigma_s: while the vehicle accelerates by |a|, its fix's velocity
+        # may be that much times it behind the state's (off by default: FilterConfig)
+        lag = self.f.gnss_latency_sigma_s * math.hypot(x[AX], x[AY])
+        return Aid(np.array([fix.vel_e_mps, fix.vel_n_mps]), hx, H, np.eye(2) * (self.sigma_vel(fix) ** 2 + lag * lag))
 
 
 class FreezeWatch:
