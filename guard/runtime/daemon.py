@@ -177,7 +177,7 @@ class Daemon:
                     self._operator("data is back", level="info")
                 elif quiet - silent:                # a stream fell silent
                     what = "GNSS or IMU" if len(quiet) == 2 else next(iter(quiet))
-                    self._operator(f"no {what} data for {timeout:g} s: waiting")
+                    self._operator(f"no {what} data for {timeout:g} s: waiting{self._other_systems()}")
                 else:                               # one came back, the other is still silent
                     self._operator(f"{next(iter(silent - quiet))} data is back, still no "
                                    f"{next(iter(quiet))} data", level="info")
@@ -215,6 +215,16 @@ class Daemon:
     def _core_notice(self, text: str, level: str = "warning", send: bool = True) -> None:
         """A Notice of the core's: the MCAP log has it already (as an event)."""
         self._operator(text, level, send, logged=True)
+
+    def _other_systems(self) -> str:
+        """Where the link heard fixes from systems it does not read (an autopilot whose SYSID_THISMAV is not
+        link.system_id): which, and what to set; else nothing."""
+        heard = getattr(self.source, "other_gnss", None)
+        if not heard:
+            return ""
+        ids = ", ".join(map(str, sorted(heard)))
+        return (f" (system {ids} sends GPS_RAW_INT, guard reads system {self.cfg.link.system_id}: "
+                "set link.system_id or --system-id)")
 
     def _operator(self, text: str, level: str = "warning", send: bool = True, logged: bool = False) -> None:
         (log.warning if level == "warning" else log.info)("%s", text)

@@ -150,6 +150,8 @@ class MavlinkLink:
         self.system_id = cfg.system_id
         self.skipped: Counter[str] = Counter()
         self.skip = SkipLog(self.skipped)
+        self.other_gnss: Counter[int] = Counter()   # systems not read that send GPS_RAW_INT: the daemon names
+                                                    # them when the data it reads falls silent
         self.repeats = CompassRepeats()             # a slower compass's reading, once
         self.unix_fixes = UnixFixes(log.warning)    # fixes stamped in UNIX time, on the boot clock
         refuse_taken_port(url)
@@ -272,6 +274,8 @@ class MavlinkLink:
                     self._from_peer(addr)
             else:
                 self.skip("other_system")
+                if frame.msg_id == mavlink.MAVLINK_MSG_ID_GPS_RAW_INT:
+                    self.other_gnss[frame.system] += 1
             return None
         try:
             msg = self.conn.mav.decode(bytearray(frame.buf))     # records the signed stream's time stamp

@@ -35,6 +35,7 @@ from pymavlink import mavutil                          # noqa: E402
 from guard.config import parse                         # noqa: E402
 from guard.runtime.daemon import Daemon                        # noqa: E402
 from guard_sim import scenario                               # noqa: E402
+from guard_sim.mavout import Encoder                         # noqa: E402
 from guard_sim.run import Simulation                         # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -731,6 +732,26 @@ def test_a_link_without_the_imu_stream_says_so(caplog):
     # say the GNSS fell silent too; only when every fix went out in time must the warning spare it
     if max(b - a for a, b in zip(sent, sent[1:])) < 0.35:
         assert not any("GNSS" in t for t in warnings), warnings
+
+
+def test_an_autopilot_of_another_system_id_is_named_when_the_data_falls_silent(caplog):
+    """An autopilot whose SYSID_THISMAV is 7 while guard reads system 1: its fixes are skipped, and
+    the silence warning names the system that sends them and the key to set."""
+    _, items = scenario_messages("paper", until_s=2)
+    enc7 = Encoder()
+    enc7.mav.srcSystem = 7
+    gps = [it for it in items if it[1].get_type() == "GPS_RAW_INT"]
+    caplog.set_level(logging.WARNING)
+    with in_process({"link": {"link_timeout_s": 0.5}}) as g:
+        peer = g.connect()
+        for _, msg in gps[:15]:
+            peer.write(enc7.pack(msg))
+            time.sleep(0.05)
+        wait_for(lambda: any("system 7 sends GPS_RAW_INT" in r.getMessage() for r in caplog.records),
+                 what="the silence warning naming system 7")
+        assert g.d.samples == 0, "system 7 is not read: link.system_id is 1"
+    said = [r.getMessage() for r in caplog.records if "system 7" in r.getMessage()]
+    assert "no GNSS or IMU data" in said[0] and "link.system_id" in said[0], said
 
 
 def test_a_long_warning_reaches_the_ground_station_whole():
