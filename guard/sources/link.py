@@ -272,8 +272,8 @@ class MavlinkLink:
             if self._draining:      # a link guard only sends on: a ground station's frames are no skipped
                 if addr is not None:                # sample, and a udpin one answers the first it heard
                     self._from_peer(addr)
-            else:
-                self.skip("other_system")
+            elif frame.msg_id != mavlink.MAVLINK_MSG_ID_HEARTBEAT:     # a heartbeat is no data (a ground
+                self.skip("other_system")                              # station's, routed here): not counted
                 if frame.msg_id == mavlink.MAVLINK_MSG_ID_GPS_RAW_INT:
                     self.other_gnss[frame.system] += 1
             return None

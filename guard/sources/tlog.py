@@ -181,7 +181,8 @@ class TlogReader(LogSource):
                 pos = end
                 continue
             if self.system_id and sysid != self.system_id:
-                skip["other_system"] += 1
+                if msgid != mavlink.MAVLINK_MSG_ID_HEARTBEAT:    # a heartbeat is no data: a ground station's
+                    skip["other_system"] += 1                  # (every tlog a ground station records has them)
             else:
                 self.first_time_us = self.first_time_us or t
                 self.last_time_us = t

@@ -402,3 +402,22 @@ def test_a_link_guard_only_sends_on_hears_its_ground_station_without_counting_it
     finally:
         link.close()
         tx.close()
+
+
+def test_a_ground_stations_heartbeats_on_the_autopilots_link_are_not_skipped_data():
+    """A router that forwards the ground station's HEARTBEATs to guard's link: they are no data and
+    not counted as another system's messages (every log and link would say so); its other messages
+    are, and a fix from it is remembered for the silence warning."""
+    link, addr = open_link()
+    gcs, tx = sender(system=255), udp_socket()
+    try:
+        for _ in range(3):
+            tx.sendto(bytes(gcs.heartbeat_encode(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+                            .pack(gcs)), addr)
+        tx.sendto(gps(gcs, 1_000_000), addr)
+        assert not collect(link, lambda got: False, timeout_s=0.3)
+        assert link.skipped["other_system"] == 1, link.skipped
+        assert link.other_gnss == {255: 1}
+    finally:
+        link.close()
+        tx.close()

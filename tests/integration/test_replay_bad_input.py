@@ -342,6 +342,7 @@ def test_a_tlog_of_another_system_id_is_read_and_says_so(paper, tmp_path):
         report = json.loads(p.stdout)
         assert report["gnss_samples"] == 801 and report["alarms"][0]["gnss_index"] == 400, extra
         said = [n for n in report["notes"] if "GPS_RAW_INT" in n]
+        assert "other_system" not in report["skipped"], report["skipped"]   # the ground station's heartbeat
         if extra:
             assert not said, (extra, said)
         else:
