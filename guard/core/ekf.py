@@ -91,7 +91,8 @@ class FilterConfig:
                                       # vehicle's of up to this long before it, so (this * |a|)^2, |a| the estimated
                                       # horizontal acceleration, joins its R (guard.core.aiding.gnss). Measured, not
                                       # taken: 0.2 quiets hard-flown real copters (README), but catches the
-                                      # simulator's accelerometer biases at 2.0 to 2.4 s instead of 1.7 to 2.0
+                                      # simulator's accelerometer biases at 1.9 to 2.4 s instead of 1.7 to 2.0
+                                      # in the air, a car's sideways one at 6.8 to 10.3 s instead of 3.2 to 4.0
     gnss_delay_s: float = 0.0         # the receiver's latency: a fix is compared with the state this long before it
     gyro_sigma_radps: float = 0.01    # the floor: the gyro's own noise, measured from its samples, when larger
     accel_sigma_mps2: float = 0.15    # likewise (vibration: 0.25 to 0.66 m/s^2 in two real copter flights at 25 Hz)
@@ -115,9 +116,10 @@ class FilterConfig:
     mag_offset_per_turn_rad: float = 0.0   # off. A compass's error depends on its heading (a hard iron left over by
                                       # its calibration turns it by B sin + C cos of the heading, a ship's deviation
                                       # curve), so a turn moves the learnt offset b_psi: its variance grows by this^2
-                                      # per radian turned. Measured, not taken: 0.06 quiets real copters' compasses
-                                      # (README), but on the simulator a gyro bias is then caught at 2.2 to 5 s
-                                      # instead of 1.4 to 1.7, a 0.01 G/s magnetometer ramp at 25 s instead of 2 to 4
+                                      # per radian turned. Measured, not taken: 0.06 quiets the compasses of the 24
+                                      # real flights first diagnosed but not of 23 found later (README), and on the
+                                      # simulator a gyro bias is then caught at 2.2 to 5 s instead of 1.4 to 1.7, a
+                                      # 0.01 G/s magnetometer ramp at 25 s instead of 1.8 to 4
     q_mag_offset_rad: float = 3e-4    # the magnetometer's heading offset, rad/sqrt(s): 0.4 degree in 10 minutes
     q_slip_rad_per_mps2: float = 1e-4   # k_s, the wheels' slip (rad per m/s^2 of lateral acceleration),
                                       # per sqrt(s): 0.0025 in 10 minutes (a change of surface)
@@ -187,7 +189,8 @@ class NavEKF:
         # P = F P Fᵀ + Q,  Q = q T
         self.P = F @ self.P @ F.T
         self.P[self._diag] += self.q * T
-        if self.q[BM] > 0.0 and self.cfg.mag_offset_per_turn_rad:     # b_psi moves with the heading turned
+        if self.q[BM] > 0.0 and self.cfg.mag_offset_per_turn_rad:
+            # P[b_psi, b_psi] += sigma_turn^2 |theta_dot| T: b_psi moves with the heading turned
             self.P[BM, BM] += self.cfg.mag_offset_per_turn_rad ** 2 * abs(w) * T
 
     def set_heading(self, theta: float) -> None:

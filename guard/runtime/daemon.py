@@ -222,9 +222,9 @@ class Daemon:
         heard = getattr(self.source, "other_gnss", None)
         if not heard:
             return ""
-        ids = ", ".join(map(str, sorted(heard)))
-        return (f" (system {ids} sends GPS_RAW_INT, guard reads system {self.cfg.link.system_id}: "
-                "set link.system_id or --system-id)")
+        ids = sorted(heard)
+        who = f"system {ids[0]} sends" if len(ids) == 1 else f"systems {', '.join(map(str, ids))} send"
+        return f" ({who} GPS_RAW_INT, guard reads system {self.cfg.link.system_id}: set link.system_id in the config)"
 
     def _operator(self, text: str, level: str = "warning", send: bool = True, logged: bool = False) -> None:
         (log.warning if level == "warning" else log.info)("%s", text)

@@ -77,8 +77,7 @@ def nothing_read(report: dict) -> str:
     """What a log held, in one line, when it held nothing guard could monitor."""
     found = ", ".join(f"{n} {k}" for k, n in sorted(report["messages"].items(), key=lambda kv: -kv[1])[:6])
     skipped = ", ".join(f"{n} {k}" for k, n in sorted(report["skipped"].items(), key=lambda kv: -kv[1])[:4])
-    hint = " (try --system-id 0: every system)" if report["skipped"].get("other_system") else ""
-    return f"found {found or 'no message'}" + (f"; skipped {skipped}" if skipped else "") + hint
+    return f"found {found or 'no message'}" + (f"; skipped {skipped}" if skipped else "")
 
 
 def truth_beside(path: str) -> dict | None:

@@ -60,7 +60,8 @@ WARN_REASONS = {"bad_signature", "other_address"}     # signs of an attack: WARN
 def read_key(path: str) -> bytes:
     """A signing key file: 32 raw bytes, or 64 hex digits."""
     try:
-        data = open(path, "rb").read()
+        with open(path, "rb") as f:
+            data = f.read()
     except OSError as e:
         raise ConfigError(f"link.signing_key_file: {path}: {e.strerror}") from None
     text = data.strip()

@@ -72,22 +72,31 @@ class TlogReader(LogSource):
         self._file.close()
 
     def _gnss_system(self, wanted: int) -> int:
-        """The system to read: `wanted`, unless it sends no GPS_RAW_INT in this log and another does (an
-        autopilot whose SYSID_THISMAV is not 1; a log of several vehicles): then the one that sends the
-        most, and that is said. A tlog is read after the flight, and a log of nothing is no answer."""
-        if self.size == 0:
-            return wanted
-        senders: Counter[int] = Counter()
-        with mmap.mmap(self._file.fileno(), 0, access=mmap.ACCESS_READ) as buf:
-            for msg in TlogReader(self.path, 0, peek=False)._frames(buf, GNSS_ONLY):
-                senders[msg.get_srcSystem()] += 1
-        if not senders or senders[wanted]:
+        """The system to read: `wanted`, unless it sends no 3D fix in this log and another does (an
+        autopilot whose SYSID_THISMAV is not 1; a log of several vehicles): then the one that sends
+        the most, and that is said. A tlog is read after the flight, when its autopilot cannot be asked.
+        The scan stops at the first fix from `wanted`: a log of the system asked for costs little."""
+        senders: Counter[int] = Counter()      # 3D fixes per system
+        probe = TlogReader(self.path, 0, peek=False)
+        try:
+            if probe.size == 0:
+                return wanted
+            with mmap.mmap(probe._file.fileno(), 0, access=mmap.ACCESS_READ) as buf:
+                for msg in probe._frames(buf, GNSS_ONLY):
+                    fix, _ = to_sample(msg)
+                    if isinstance(fix, GnssFix) and fix.fix_ok:
+                        if msg.get_srcSystem() == wanted:
+                            return wanted
+                        senders[msg.get_srcSystem()] += 1
+        finally:
+            probe.close()
+        if not senders:
             return wanted
         chosen, n = senders.most_common(1)[0]
         others = sorted(s for s in senders if s != chosen)
-        self.notes.append(f"system {wanted} sends no GPS_RAW_INT in this log: reading system {chosen}, which sends "
-                          f"{n}" + (f" (also sending: {', '.join(map(str, others))})" if others else "")
-                          + "; --system-id chooses")
+        self.notes.append(f"system {wanted} sends no GNSS fix in this log: reading system {chosen}, which sends {n}"
+                          + (f" (systems {', '.join(map(str, others))} send some too)" if others else "")
+                          + f"; --system-id N reads system N, 0 every system")
         return chosen
 
     def track(self) -> Iterator[tuple[int, float, float, float | None, float | None]]:

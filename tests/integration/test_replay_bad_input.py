@@ -341,32 +341,49 @@ def test_a_tlog_of_another_system_id_is_read_and_says_so(paper, tmp_path):
         assert p.returncode == 0, p.stderr
         report = json.loads(p.stdout)
         assert report["gnss_samples"] == 801 and report["alarms"][0]["gnss_index"] == 400, extra
-        said = [n for n in report["notes"] if "GPS_RAW_INT" in n]
+        said = [n for n in report["notes"] if "GNSS fix" in n]
         assert "other_system" not in report["skipped"], report["skipped"]   # the ground station's heartbeat
         if extra:
             assert not said, (extra, said)
         else:
             assert len(said) == 1 and "reading system 7" in said[0] and "--system-id" in said[0], said
     p = guard_cli("replay", path, cwd=tmp_path)          # the replay's own lines say it too
-    assert "system 1 sends no GPS_RAW_INT" in p.stdout, p.stdout
+    assert "system 1 sends no GNSS fix" in p.stdout, p.stdout
     p = guard_cli("replay", path, "--system-id", "300", cwd=tmp_path)
     assert p.returncode != 0 and "--system-id" in p.stderr and "Traceback" not in p.stderr, p.stderr
 
 
 def test_a_tlog_of_two_vehicles_reads_the_one_asked_for(paper, tmp_path):
-    """Two systems both sending fixes, frame by frame: the one asked for (link.system_id, 1 by
-    default) is read, the other's frames are counted as skipped, and no choice is said."""
+    """Two systems both sending fixes, frame by frame, system 3 only the first half of the run: the
+    one asked for (link.system_id, 1 by default) is read, the other's frames are counted as skipped
+    (their heartbeats are no data), and no choice is said."""
     frames = paper[2]
+    half = len(frames) // 2
     mixed = bytearray()
-    for f, g in zip(frames, split(as_system(frames, 3))):
-        mixed += struct.pack(">Q", f.prefix) + f.frame + struct.pack(">Q", g.prefix) + g.frame
+    for i, (f, g) in enumerate(zip(frames, split(as_system(frames, 3)))):
+        mixed += struct.pack(">Q", f.prefix) + f.frame + (struct.pack(">Q", g.prefix) + g.frame if i < half else b"")
     path = write(tmp_path, "two.tlog", bytes(mixed))
-    for extra in ((), ("--system-id", "3")):
-        p = guard_cli("replay", path, *extra, "--report", "-", cwd=tmp_path)
-        report = json.loads(p.stdout)
-        assert report["gnss_samples"] == 801 and report["alarms"][0]["gnss_index"] == 400, extra
-        assert report["skipped"]["other_system"] >= 801, report["skipped"]
-        assert not [n for n in report["notes"] if "GPS_RAW_INT" in n], report["notes"]
+    reports = {}
+    for sid in ("1", "3"):
+        p = guard_cli("replay", path, "--system-id", sid, "--report", "-", cwd=tmp_path)
+        reports[sid] = report = json.loads(p.stdout)
+        assert not [n for n in report["notes"] if "GNSS fix" in n], report["notes"]
+        assert report["skipped"]["other_system"] == sum(
+            1 for f in (frames if sid == "3" else frames[:half]) if f.msgid in (GPS_ID, IMU_ID)), report["skipped"]
+    assert reports["1"]["gnss_samples"] == 801 and reports["1"]["alarms"][0]["gnss_index"] == 400
+    assert reports["3"]["gnss_samples"] < 801 / 2 + 1
+
+
+def test_a_system_sending_no_fix_gives_way_to_the_one_whose_flight_it_is(paper, tmp_path):
+    """System 1 sends a few GPS_RAW_INT without a fix (a second receiver, a companion), system 7 the
+    whole flight: system 7 is read, and said; a clean-looking report of nothing is the failure."""
+    gcs = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    nofix = b"".join(struct.pack(">Q", paper[2][0].prefix) + gcs.gps_raw_int_encode(
+        i, 1, 0, 0, 0, 65535, 65535, 65535, 65535, 0).pack(gcs) for i in range(5))
+    path = write(tmp_path, "nofix1.tlog", nofix + as_system(paper[2], 7))
+    report = replay(path)
+    assert report["gnss_samples"] == 801 and report["alarms"][0]["gnss_index"] == 400
+    assert any("reading system 7" in n for n in report["notes"]), report["notes"]
 
 
 def test_a_receiver_without_a_fix_at_the_start_is_reported(tmp_path):

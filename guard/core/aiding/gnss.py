@@ -115,8 +115,8 @@ class GnssAiding:
 
     def velocity(self, fix: GnssFix, x: np.ndarray) -> Aid:
         hx, H = gnss_velocity_model(x)
-        # a latency known to within gnss_latency_sigma_s: while the vehicle accelerates by |a|, its fix's velocity
-        # may be that much times it behind the state's (off by default: FilterConfig)
+        # R = (sigma_v^2 + (sigma_L |a|)^2) I: a latency known to within sigma_L (gnss_latency_sigma_s, off by
+        # default) puts a fix's velocity up to that long behind the state's while the vehicle accelerates by |a|
         lag = self.f.gnss_latency_sigma_s * math.hypot(x[AX], x[AY])
         return Aid(np.array([fix.vel_e_mps, fix.vel_n_mps]), hx, H, np.eye(2) * (self.sigma_vel(fix) ** 2 + lag * lag))
 
