@@ -76,7 +76,7 @@ class Judge:
             if named != sensor:                 # a witness named it: its own offset, not the alarm's
                 offset = self.witnesses.gyro_bias() if named == Sensor.GYRO else self.witnesses.lateral_bias(bw)
             events.append(Alarm(t_us, gnss_index, named, channel, stat[i], thr[i], offset,
-                                self.detector.name, ambiguous, standing=self.standing(named, t_us)))
+                                self.detector.name, ambiguous, standing=self.record_alarm(named, t_us)))
             if not self.cfg.exclude_on_alarm:
                 continue
             health.exclude(named, t_us, offset)
@@ -94,11 +94,12 @@ class Judge:
                 ekf.x[BAY] = health.accel_ref
         return events
 
-    def standing(self, sensor: Sensor, t_us: int) -> bool:
-        """Whether an alarm on `sensor` now is its standing alarm going on: the sensor is latched (fused
-        again by a re-anchoring, never having agreed) and alarmed within STANDING_GAP_S before. Agreement
-        cannot release a latch (an estimate anchored on the GNSS agrees with it by construction), so an
-        alarm after a longer quiet is a new one."""
+    def record_alarm(self, sensor: Sensor, t_us: int) -> bool:
+        """Record an alarm on `sensor` at t_us (once per alarm: the judge's own and the freeze's), and
+        say whether it is its standing alarm going on: the sensor is latched (fused again by a
+        re-anchoring, never having agreed) and alarmed within STANDING_GAP_S before. Agreement cannot
+        release a latch (an estimate anchored on the GNSS agrees with it by construction), so an alarm
+        after a longer quiet is a new one."""
         last_t, _ = self.last_alarm.get(sensor, (None, False))
         standing = sensor in self.health.latched and last_t is not None and \
             0 <= t_us - last_t <= STANDING_GAP_S * 1e6

@@ -297,7 +297,7 @@ class Monitor:
         alarm = self.freeze.check(fix, math.hypot(self.ekf.x[VX], self.ekf.x[VY]), self.gnss_index)
         if alarm is None or Sensor.GNSS_POS in self.health.excluded:
             return []
-        alarm = dataclasses.replace(alarm, standing=self.judge.standing(Sensor.GNSS_POS, fix.t_us))
+        alarm = dataclasses.replace(alarm, standing=self.judge.record_alarm(Sensor.GNSS_POS, fix.t_us))
         if self.cfg.exclude_on_alarm:
             self.health.exclude(Sensor.GNSS_POS, fix.t_us)
         return [alarm]
