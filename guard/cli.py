@@ -74,7 +74,11 @@ def _replay(args) -> int:
 def _run(args) -> int:
     from guard.config import load
     from guard.runtime.daemon import Daemon
-    return Daemon(load(args.config), connect=args.connect, mcap=args.mcap).run()
+    from dataclasses import replace
+    cfg = load(args.config)
+    if args.system_id is not None:
+        cfg = replace(cfg, link=replace(cfg.link, system_id=args.system_id))
+    return Daemon(cfg, connect=args.connect, mcap=args.mcap).run()
 
 
 def _config(args) -> int:
@@ -90,6 +94,9 @@ def _config(args) -> int:
         cfg, _ = replace(cfg, link=replace(cfg.link, connect=args.connect)), overrides.append("link.connect (--connect)")
     if args.mcap is not None:
         cfg, _ = replace(cfg, log=replace(cfg.log, mcap=args.mcap)), overrides.append("log.mcap (--mcap)")
+    if args.system_id is not None:
+        cfg = replace(cfg, link=replace(cfg.link, system_id=args.system_id))
+        overrides.append("link.system_id (--system-id)")
     print(f"# guard {__version__}: the configuration in effect")
     print(f"# file: {path or 'none (no --config, and no ' + DEFAULT_CONFIG + ')'}")
     print(f"# from the file: {', '.join(sorted(given)) or 'nothing'}; every other key is its default")
@@ -208,6 +215,8 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("--config", help=f"TOML config file; default: {DEFAULT_CONFIG} if it exists, else the built-in "
                    "defaults (guard config prints them)")
     r.add_argument("--mcap", help="MCAP log file or directory; default: log.mcap of the config (none)")
+    r.add_argument("--system-id", type=_system_id, help="the autopilot's MAVLink system id (its SYSID_THISMAV); "
+                   "default: link.system_id of the config (1); 0 reads every system")
     r.set_defaults(func=_run)
 
     r = command("config", help="print the configuration in effect (file, defaults, overrides) as TOML",
@@ -216,6 +225,7 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("--config", help=f"TOML config file (default: {DEFAULT_CONFIG} if it exists)")
     r.add_argument("--connect", help="as guard run --connect")
     r.add_argument("--mcap", help="as guard run --mcap")
+    r.add_argument("--system-id", type=_system_id, help="as guard run --system-id")
     r.set_defaults(func=_config)
 
     r = command("replay", help="run a log through the detector offline (tlog, DataFlash .bin, ULog .ulg)")

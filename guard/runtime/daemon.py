@@ -224,7 +224,7 @@ class Daemon:
             return ""
         ids = sorted(heard)
         who = f"system {ids[0]} sends" if len(ids) == 1 else f"systems {', '.join(map(str, ids))} send"
-        return f" ({who} GPS_RAW_INT, guard reads system {self.cfg.link.system_id}: set link.system_id in the config)"
+        return f" ({who} GPS_RAW_INT, guard reads system {self.cfg.link.system_id}: --system-id or link.system_id)"
 
     def _operator(self, text: str, level: str = "warning", send: bool = True, logged: bool = False) -> None:
         (log.warning if level == "warning" else log.info)("%s", text)

@@ -24,13 +24,14 @@ SITL = "ardupilot-sitl/copter_clean_straight.tlog"
 def test_guard_config_prints_every_key_and_reads_back(tmp_path, capsys):
     path = tmp_path / "rover.toml"
     path.write_text('[monitor]\nvehicle = "ground"\n[detector]\nfalse_alarm_interval_h = 2000.0\n')
-    assert main(["config", "--config", str(path), "--connect", "tcp:127.0.0.1:5760"]) == 0
+    assert main(["config", "--config", str(path), "--connect", "tcp:127.0.0.1:5760", "--system-id", "10"]) == 0
     out = capsys.readouterr().out
     assert f"# file: {path}" in out
     assert "detector.false_alarm_interval_h, monitor.vehicle" in out and "link.connect (--connect)" in out
+    assert "link.system_id (--system-id)" in out
     cfg = parse(tomllib.loads(out), "printed")
     assert cfg.monitor.vehicle == "ground" and cfg.monitor.detector.false_alarm_interval_h == 2000.0
-    assert cfg.link.connect == "tcp:127.0.0.1:5760"
+    assert cfg.link.connect == "tcp:127.0.0.1:5760" and cfg.link.system_id == 10
     # every key is there, the defaults included: the printed file is the whole configuration
     expected = load(str(path))
     assert dump(cfg) == dump(Config(link=cfg.link, can=expected.can, log=expected.log, monitor=expected.monitor))

@@ -751,7 +751,7 @@ def test_an_autopilot_of_another_system_id_is_named_when_the_data_falls_silent(c
                  what="the silence warning naming system 7")
         assert g.d.samples == 0, "system 7 is not read: link.system_id is 1"
     said = [r.getMessage() for r in caplog.records if "system 7" in r.getMessage()]
-    assert "no GNSS or IMU data" in said[0] and "link.system_id" in said[0], said
+    assert "no GNSS or IMU data" in said[0] and "--system-id or link.system_id" in said[0], said
 
 
 def test_a_long_warning_reaches_the_ground_station_whole():
