@@ -25,8 +25,7 @@ def _replay(args) -> int:
     from dataclasses import replace
     if args.detector:
         cfg = replace(cfg, monitor=replace(cfg.monitor, detector=replace(cfg.monitor.detector, name=args.detector)))
-    if args.system_id is not None:
-        cfg = replace(cfg, link=replace(cfg.link, system_id=args.system_id))
+    cfg = _with_system_id(cfg, args.system_id)
     listeners = []
     trace = Trace() if args.plot else None
     if trace:
@@ -74,10 +73,7 @@ def _replay(args) -> int:
 def _run(args) -> int:
     from guard.config import load
     from guard.runtime.daemon import Daemon
-    from dataclasses import replace
-    cfg = load(args.config)
-    if args.system_id is not None:
-        cfg = replace(cfg, link=replace(cfg.link, system_id=args.system_id))
+    cfg = _with_system_id(load(args.config), args.system_id)
     return Daemon(cfg, connect=args.connect, mcap=args.mcap).run()
 
 
@@ -95,8 +91,7 @@ def _config(args) -> int:
     if args.mcap is not None:
         cfg, _ = replace(cfg, log=replace(cfg.log, mcap=args.mcap)), overrides.append("log.mcap (--mcap)")
     if args.system_id is not None:
-        cfg = replace(cfg, link=replace(cfg.link, system_id=args.system_id))
-        overrides.append("link.system_id (--system-id)")
+        cfg, _ = _with_system_id(cfg, args.system_id), overrides.append("link.system_id (--system-id)")
     print(f"# guard {__version__}: the configuration in effect")
     print(f"# file: {path or 'none (no --config, and no ' + DEFAULT_CONFIG + ')'}")
     print(f"# from the file: {', '.join(sorted(given)) or 'nothing'}; every other key is its default")
@@ -164,6 +159,12 @@ def _tune(args) -> int:
     changed = ", ".join(f"{k} = {v:g}" for k, v in profile["filter"].items()) or "nothing"
     print(f"guard tune: {args.out}: {changed}")
     return 0
+
+
+def _with_system_id(cfg, system_id: int | None):
+    """cfg with --system-id in link.system_id, where it was given."""
+    from dataclasses import replace
+    return cfg if system_id is None else replace(cfg, link=replace(cfg.link, system_id=system_id))
 
 
 def _system_id(text: str) -> int:

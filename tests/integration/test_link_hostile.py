@@ -379,15 +379,20 @@ def test_skip_log_writes_one_line_per_reason_per_period(caplog):
     assert sum(r.levelno == logging.WARNING for r in caplog.records) == 4     # other_address warns
 
 
+def gcs_heartbeats(gcs, tx, addr, n: int) -> None:
+    """n HEARTBEATs of a ground station (MAV_TYPE_GCS, no autopilot) sent to addr."""
+    for _ in range(n):
+        tx.sendto(bytes(gcs.heartbeat_encode(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0).pack(gcs)),
+                  addr)
+
+
 def test_a_link_guard_only_sends_on_hears_its_ground_station_without_counting_it():
     """link.gcs (or the alarm link of a monitor reading CAN) is drained, not read for samples: the
     ground station's own HEARTBEATs there teach it the peer and are not 'other_system' skips."""
     link, addr = open_link()
     gcs, tx = sender(system=255), udp_socket()
     try:
-        for _ in range(5):
-            tx.sendto(bytes(gcs.heartbeat_encode(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
-                            .pack(gcs)), addr)
+        gcs_heartbeats(gcs, tx, addr, 5)
         deadline = time.monotonic() + 3.0
         drained = 0
         while drained < 5 and time.monotonic() < deadline:
@@ -411,9 +416,7 @@ def test_a_ground_stations_heartbeats_on_the_autopilots_link_are_not_skipped_dat
     link, addr = open_link()
     gcs, tx = sender(system=255), udp_socket()
     try:
-        for _ in range(3):
-            tx.sendto(bytes(gcs.heartbeat_encode(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
-                            .pack(gcs)), addr)
+        gcs_heartbeats(gcs, tx, addr, 3)
         tx.sendto(gps(gcs, 1_000_000), addr)
         assert not collect(link, lambda got: False, timeout_s=0.3)
         assert link.skipped["other_system"] == 1, link.skipped
