@@ -189,7 +189,7 @@ class NavEKF:
         # P = F P Fᵀ + Q,  Q = q T
         self.P = F @ self.P @ F.T
         self.P[self._diag] += self.q * T
-        if self.q[BM] > 0.0 and self.cfg.mag_offset_per_turn_rad:
+        if self.cfg.mag_offset_per_turn_rad and self.q[BM] > 0.0:      # off by default: one test
             # P[b_psi, b_psi] += sigma_turn^2 |theta_dot| T: b_psi moves with the heading turned
             self.P[BM, BM] += self.cfg.mag_offset_per_turn_rad ** 2 * abs(w) * T
 
