@@ -79,15 +79,10 @@ class TlogReader(LogSource):
         senders: Counter[int] = Counter()      # 3D fixes per system
         probe = TlogReader(self.path, 0, peek=False)
         try:
-            if probe.size == 0:
-                return wanted
-            with mmap.mmap(probe._file.fileno(), 0, access=mmap.ACCESS_READ) as buf:
-                for msg in probe._frames(buf, GNSS_ONLY):
-                    fix, _ = to_sample(msg)
-                    if isinstance(fix, GnssFix) and fix.fix_ok:
-                        if msg.get_srcSystem() == wanted:
-                            return wanted
-                        senders[msg.get_srcSystem()] += 1
+            for system, _ in probe._fixes():
+                if system == wanted:
+                    return wanted
+                senders[system] += 1
         finally:
             probe.close()
         if not senders:
@@ -96,18 +91,23 @@ class TlogReader(LogSource):
         others = sorted(s for s in senders if s != chosen)
         self.notes.append(f"system {wanted} sends no GNSS fix in this log: reading system {chosen}, which sends {n}"
                           + (f" (systems {', '.join(map(str, others))} send some too)" if others else "")
-                          + f"; --system-id N reads system N, 0 every system")
+                          + "; --system-id N reads system N, 0 every system")
         return chosen
 
-    def track(self) -> Iterator[tuple[int, float, float, float | None, float | None]]:
-        """(t_us, lat, lon, v_n, v_e) of every 3D fix (v None: none sent), GPS_RAW_INT alone decoded."""
+    def _fixes(self) -> Iterator[tuple[int, GnssFix]]:
+        """(sending system, fix) of every 3D fix, GPS_RAW_INT alone decoded."""
         if self.size == 0:
             return
         with mmap.mmap(self._file.fileno(), 0, access=mmap.ACCESS_READ) as buf:
             for msg in self._frames(buf, GNSS_ONLY):
                 fix, _ = to_sample(msg)
                 if isinstance(fix, GnssFix) and fix.fix_ok:
-                    yield fix.t_us, fix.lat_deg, fix.lon_deg, fix.vel_n_mps, fix.vel_e_mps
+                    yield msg.get_srcSystem(), fix
+
+    def track(self) -> Iterator[tuple[int, float, float, float | None, float | None]]:
+        """(t_us, lat, lon, v_n, v_e) of every 3D fix (v None: none sent)."""
+        for _, fix in self._fixes():
+            yield fix.t_us, fix.lat_deg, fix.lon_deg, fix.vel_n_mps, fix.vel_e_mps
 
     def samples(self) -> Iterator[Sample]:
         clock, repeats, fixes = self._clock, CompassRepeats(), UnixFixes(self.notes.append)
