@@ -124,7 +124,7 @@ def _sim(args) -> int:
 
     try:
         truth = run(sc, args.seed, tlog=args.tlog, out=args.out, speedup=args.speedup, fast=args.fast,
-                    on_statustext=show, can=can, bin=args.bin, ulg=args.ulg)
+                    on_statustext=show, can=can, bin=args.bin, ulg=args.ulg, autopilot=args.autopilot)
     finally:
         if can:
             can.close()
@@ -207,7 +207,8 @@ def parser() -> argparse.ArgumentParser:
         return sub.add_parser(name, parents=[common], formatter_class=kw.pop("formatter_class", fmt), **kw)
 
     r = command("run", help="the daemon: read a live link, alarm on it, log to MCAP",
-                description="Read GPS_RAW_INT, RAW_IMU and ATTITUDE from a live MAVLink link (or DroneCAN), "
+                description="Read GPS_RAW_INT, RAW_IMU (ArduPilot) or HIGHRES_IMU (PX4) and ATTITUDE from a live "
+                "MAVLink link (or DroneCAN), "
                 "run the detector, send the alarms back as STATUSTEXT and log to MCAP.",
                 epilog=RUN_EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
     r.add_argument("--connect", help="udpin:HOST:PORT, udpout:HOST:PORT, udpbcast:ADDRESS:PORT, tcp:HOST:PORT, "
@@ -264,6 +265,9 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("--can", help="publish DroneCAN on this bus, e.g. can:virtual:bus0")
     r.add_argument("--speedup", type=float, default=1.0, help="live output at X times real time")
     r.add_argument("--fast", action="store_true", help="live output as fast as possible (no pacing)")
+    r.add_argument("--autopilot", choices=("ardupilot", "px4"), default="ardupilot",
+                   help="how the tlog and the live link send the IMU: ardupilot, RAW_IMU (default); px4, "
+                        "HIGHRES_IMU, as PX4's onboard link does")
     r.set_defaults(func=_sim)
 
     r = command("demo", help="simulator and daemon on UDP loopback: watch the attack being caught")

@@ -1,4 +1,6 @@
-"""MAVLink 2 output of the simulator: GPS_RAW_INT, RAW_IMU and HEARTBEAT in ArduPilot's units.
+"""MAVLink 2 output of the simulator: GPS_RAW_INT, RAW_IMU and HEARTBEAT in ArduPilot's units; as a PX4
+autopilot (`Encoder(autopilot="px4")`) the IMU goes out as HIGHRES_IMU instead, as PX4's onboard link
+sends it (SI floats; `fields_updated` marks the accelerometer, the gyro and the magnetometer new).
 
 Two sinks: a tlog file (8-byte big-endian unix-microsecond prefix before every frame, written as
 fast as possible) and a live pymavlink link (`udpout:127.0.0.1:14550`, `tcp:...`), which also
@@ -31,20 +33,30 @@ def _u16(x: float) -> int:
     return max(0, min(65535, int(round(x))))
 
 
-class Encoder:
-    """Builds the simulator's messages (one MAVLink instance keeps the sequence numbers)."""
+AUTOPILOTS = {"ardupilot": mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, "px4": mavlink.MAV_AUTOPILOT_PX4}
+HIGHRES_ACC_GYRO_MAG = 0b111111111      # fields_updated: accelerometer, gyro and magnetometer new
 
-    def __init__(self):
+
+class Encoder:
+    """Builds the simulator's messages (one MAVLink instance keeps the sequence numbers). The run's
+    messages are ArduPilot's; `pack` sends them as the autopilot chosen sends them."""
+
+    def __init__(self, autopilot: str = "ardupilot"):
+        if autopilot not in AUTOPILOTS:
+            raise ValueError(f"autopilot {autopilot!r}: one of {', '.join(AUTOPILOTS)}")
+        self.autopilot = autopilot
         self.mav = mavlink.MAVLink(None, srcSystem=SYSTEM_ID, srcComponent=COMPONENT_ID)
 
     def pack(self, msg) -> bytes:
         """Serialise one message with the next sequence number."""
+        if self.autopilot == "px4" and msg.get_type() == "RAW_IMU":
+            msg = self.highres_imu(msg)
         buf = msg.pack(self.mav)
         self.mav.seq = (self.mav.seq + 1) % 256
         return buf
 
     def heartbeat(self):
-        return self.mav.heartbeat_encode(mavlink.MAV_TYPE_GROUND_ROVER, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+        return self.mav.heartbeat_encode(mavlink.MAV_TYPE_GROUND_ROVER, AUTOPILOTS[self.autopilot],
                                          mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mavlink.MAV_MODE_FLAG_SAFETY_ARMED,
                                          10, mavlink.MAV_STATE_ACTIVE)
 
@@ -67,6 +79,16 @@ class Encoder:
         gyro = [_i16(w * 1000.0) for w in imu.gyro_frd]            # mrad/s
         mag = [_i16(m * 1000.0) for m in imu.mag_frd]              # mGauss
         return self.mav.raw_imu_encode(t_us, *acc, *gyro, *mag, id=0, temperature=2500)
+
+    def highres_imu(self, raw):
+        """The same reading as PX4's HIGHRES_IMU: m/s^2, rad/s, gauss (RAW_IMU's resolution kept, so that
+        the two carry the same numbers); a magnetometer of zeros (none) is not marked new."""
+        mag = (raw.xmag / 1000.0, raw.ymag / 1000.0, raw.zmag / 1000.0)
+        fields = HIGHRES_ACC_GYRO_MAG if any(mag) else HIGHRES_ACC_GYRO_MAG & 0b111111
+        a = G / 1000.0
+        return self.mav.highres_imu_encode(raw.time_usec, raw.xacc * a, raw.yacc * a, raw.zacc * a,
+                                           raw.xgyro / 1000.0, raw.ygyro / 1000.0, raw.zgyro / 1000.0, *mag,
+                                           1013.25, 0.0, 0.0, 25.0, fields, id=0)
 
 
 class TlogWriter:

@@ -78,10 +78,10 @@ def truth_record(scenario: Scenario, seed: int, sensors: Sensors, trajectory: di
 class Simulation:
     """One run of a scenario. Sinks get (t_us, message); `on_gnss` lets a CAN publisher ride along."""
 
-    def __init__(self, scenario: Scenario, seed: int):
+    def __init__(self, scenario: Scenario, seed: int, autopilot: str = "ardupilot"):
         self.scenario = scenario
         self.seed = seed
-        self.encoder = Encoder()
+        self.encoder = Encoder(autopilot)
         self.sensors = Sensors(scenario, seed)
         self.vehicle = Vehicle(scenario.route, scenario.start.heading_deg)
         self.trajectory = {"t_usec": [], "lat_deg": [], "lon_deg": [], "east_m": [], "north_m": [], "yaw_rad": [],
@@ -168,7 +168,7 @@ def _log_writer(kind: str, path: str):
 
 def run(scenario: Scenario, seed: int, *, tlog: str | None = None, out: str | None = None,
         speedup: float = 1.0, fast: bool = False, on_statustext=None, can=None,
-        bin: str | None = None, ulg: str | None = None) -> dict:
+        bin: str | None = None, ulg: str | None = None, autopilot: str = "ardupilot") -> dict:
     """Run a scenario to the end; returns the truth record (and writes NAME.truth.json beside each
     log file).
 
@@ -176,8 +176,9 @@ def run(scenario: Scenario, seed: int, *, tlog: str | None = None, out: str | No
     run), `out` sends live MAVLink, `can` publishes DroneCAN; live output (MAVLink or
     CAN) is paced at `speedup` times real time unless `fast`; a tlog alone is written at once. `on_statustext(msg)` is called for every STATUSTEXT received on `out`.
     `can` is an object with send_gnss/send_imu/send_mag (guard_sim.canbus.CanPublisher) or None.
+    `autopilot` "px4" sends the tlog's and the live link's IMU as PX4 does, HIGHRES_IMU (mavout.Encoder).
     """
-    sim = Simulation(scenario, seed)
+    sim = Simulation(scenario, seed, autopilot)
     writers = [TlogWriter(tlog, sim.encoder)] if tlog else []
     files = {k: p for k, p in (("bin", bin), ("ulg", ulg)) if p}
     writers += [_log_writer(k, p) for k, p in files.items()]

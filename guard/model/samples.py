@@ -33,7 +33,7 @@ class GnssFix:
 
 @dataclass(frozen=True, slots=True)
 class ImuSample:
-    """One IMU sample (RAW_IMU, DroneCAN RawIMU + magnetometer), body frame FRD."""
+    """One IMU sample (RAW_IMU, HIGHRES_IMU, DroneCAN RawIMU + magnetometer), body frame FRD."""
 
     t_us: int
     acc_x_mps2: float        # specific force

@@ -34,6 +34,8 @@ SKIPPED = {
     "gnss_bad_position": "GNSS fixes with an impossible position (or 0, 0)",
     "gnss_bad_velocity": "GNSS fixes with an impossible velocity",
     "imu_invalid": "IMU samples with a non-finite reading",
+    "imu_not_new": "IMU messages marked as holding no new accelerometer or gyro reading (HIGHRES_IMU's fields_updated)",
+    "imu_other_stream": "IMU messages of a second stream (RAW_IMU beside HIGHRES_IMU): the first one heard is read",
     "imu_out_of_range": "IMU samples beyond any sensor's range (corrupt data)",
     "time_implausible": "messages stamped past any boot or UNIX time (corrupt or forged)",
     "bad_message": "messages that could not be decoded",

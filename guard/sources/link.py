@@ -45,12 +45,12 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink     # noqa: E402
 from guard.errors import ConfigError, SourceError   # noqa: E402
 from guard.model.samples import GnssFix, ImuSample   # noqa: E402
 from guard.sources import framing                   # noqa: E402
-from guard.sources.mavlink import CompassRepeats, UnixFixes, to_sample   # noqa: E402
+from guard.sources.mavlink import IMU_MESSAGES, CompassRepeats, ImuStream, UnixFixes, to_sample   # noqa: E402
 
 log = logging.getLogger(__name__)
 
 COMPONENT_ID = mavlink.MAV_COMP_ID_ONBOARD_COMPUTER     # 191
-WANTED = {"GPS_RAW_INT", "RAW_IMU", "ATTITUDE", "HEARTBEAT"}
+WANTED = {"GPS_RAW_INT", "RAW_IMU", "HIGHRES_IMU", "ATTITUDE", "HEARTBEAT"}
 RCVBUF_BYTES = 4 << 20          # a UDP link's receive buffer, asked for (see MavlinkLink)
 LOG_EVERY_S = 10.0              # at most one log line per skip reason this often
 UDP_MAX = 65535
@@ -155,6 +155,7 @@ class MavlinkLink:
                                                     # them when the data it reads falls silent
         self.repeats = CompassRepeats()             # a slower compass's reading, once
         self.unix_fixes = UnixFixes(log.warning)    # fixes stamped in UNIX time, on the boot clock
+        self.imu_stream = ImuStream(log.warning)    # RAW_IMU (ArduPilot) or HIGHRES_IMU (PX4), not both
         refuse_taken_port(url)
         try:
             self.conn = mavutil.mavlink_connection(url, source_system=cfg.system_id or 1,
@@ -310,7 +311,10 @@ class MavlinkLink:
 
     def _take(self, msg):
         """A decoded message to a sample, or None (counted when skipped)."""
-        if msg.get_type() not in WANTED:
+        if (kind := msg.get_type()) not in WANTED:
+            return None
+        if kind in IMU_MESSAGES and not self.imu_stream(kind):
+            self.skip("imu_other_stream")
             return None
         sample, reason = to_sample(msg)
         if reason:

@@ -2,7 +2,10 @@
 
 GPS_RAW_INT: lat/lon degE7, alt mm, vel cm/s, cog cdeg (UINT16_MAX = unknown), h_acc mm,
 vel_acc mm/s; fix_type < 3 is no 3D fix. RAW_IMU (ArduPilot): acceleration mG (specific force),
-gyro mrad/s, magnetometer mGauss, body FRD. ATTITUDE: roll, pitch rad; time_boot_ms; a roll outside
+gyro mrad/s, magnetometer mGauss, body FRD. HIGHRES_IMU (PX4's, 50 Hz in its onboard mode): the same in
+SI floats (m/s^2, rad/s, gauss), with EKF2's estimated sensor biases already taken out; its
+fields_updated bits say which groups are new (a magnetometer without its bits is the last reading
+again, and is not used); a non-finite value is skipped. ATTITUDE: roll, pitch rad; time_boot_ms; a roll outside
 [-pi, pi] or a pitch beyond 1.5 rad (or either not finite) is skipped.
 HEARTBEAT of an autopilot (autopilot != INVALID): its type; a GROUND_ROVER is a ground vehicle.
 
@@ -25,8 +28,11 @@ from guard.model.samples import Attitude, GnssFix, ImuSample, Sample, VehicleTyp
 G = 9.80665
 UNKNOWN_U16 = 65535
 MAX_EPH = 5_000                      # HDOP x 100: beyond 50 a fix is no fix, and the value is not used
-WANTED = {mavlink.MAVLINK_MSG_ID_GPS_RAW_INT, mavlink.MAVLINK_MSG_ID_RAW_IMU, mavlink.MAVLINK_MSG_ID_ATTITUDE,
-          mavlink.MAVLINK_MSG_ID_HEARTBEAT}
+WANTED = {mavlink.MAVLINK_MSG_ID_GPS_RAW_INT, mavlink.MAVLINK_MSG_ID_RAW_IMU, mavlink.MAVLINK_MSG_ID_HIGHRES_IMU,
+          mavlink.MAVLINK_MSG_ID_ATTITUDE, mavlink.MAVLINK_MSG_ID_HEARTBEAT}
+IMU_MESSAGES = ("RAW_IMU", "HIGHRES_IMU")
+HIGHRES_ACC_GYRO = 0b111111         # fields_updated: bits 0-2 the accelerometer, 3-5 the gyro ...
+HIGHRES_MAG = 0b111 << 6            # ... 6-8 the magnetometer
 
 
 T_MAX_US = 4_102_444_800_000_000     # 2100-01-01 in unix microseconds: no boot or unix time goes past it
@@ -38,7 +44,7 @@ def to_sample(msg) -> tuple[Sample | None, str | None]:
     """Convert one decoded message to a sample, or (None, reason it was skipped). A time stamp past
     any boot or unix time (a forged or corrupted field) is dropped here, before any sink sees it."""
     name = msg.get_type()
-    if name in ("GPS_RAW_INT", "RAW_IMU") and not 0 <= msg.time_usec <= T_MAX_US:
+    if name in ("GPS_RAW_INT", *IMU_MESSAGES) and not 0 <= msg.time_usec <= T_MAX_US:
         return None, "time_implausible"
     if name == "GPS_RAW_INT":
         fix_ok = msg.fix_type >= 3
@@ -60,6 +66,8 @@ def to_sample(msg) -> tuple[Sample | None, str | None]:
         mx, my, mz = (None, None, None) if mag == (0, 0, 0) else (m / 1000.0 for m in mag)
         return ImuSample(int(msg.time_usec), msg.xacc * a, msg.yacc * a, msg.zacc * a,
                          msg.xgyro * w, msg.ygyro * w, msg.zgyro * w, mx, my, mz), None
+    if name == "HIGHRES_IMU":
+        return _highres_imu(msg)
     if name == "ATTITUDE":
         if not (abs(msg.roll) <= ROLL_MAX_RAD and abs(msg.pitch) <= 1.5):     # also NaN, inf
             return None, "attitude_non_finite"
@@ -69,6 +77,45 @@ def to_sample(msg) -> tuple[Sample | None, str | None]:
             return None, None
         return VehicleType(msg.type == mavlink.MAV_TYPE_GROUND_ROVER), None
     return None, None
+
+
+def _highres_imu(msg) -> tuple[ImuSample | None, str | None]:
+    """PX4's HIGHRES_IMU. A sender that fills no fields_updated (0) is taken at its values, a zero
+    magnetometer being none; one that marks the accelerometer or the gyro as not new sent no new IMU
+    sample."""
+    acc_gyro = (msg.xacc, msg.yacc, msg.zacc, msg.xgyro, msg.ygyro, msg.zgyro)
+    if not all(math.isfinite(v) for v in acc_gyro):
+        return None, "imu_invalid"
+    updated = msg.fields_updated
+    if updated and updated & HIGHRES_ACC_GYRO != HIGHRES_ACC_GYRO:
+        return None, "imu_not_new"
+    mag = (msg.xmag, msg.ymag, msg.zmag)
+    fresh = updated & HIGHRES_MAG == HIGHRES_MAG if updated else mag != (0.0, 0.0, 0.0)
+    if not (fresh and all(math.isfinite(m) for m in mag)):
+        mag = (None, None, None)
+    return ImuSample(int(msg.time_usec), *acc_gyro, *mag), None
+
+
+class ImuStream:
+    """One IMU stream per vehicle. ArduPilot sends RAW_IMU; PX4 sends HIGHRES_IMU (and no RAW_IMU). A
+    vehicle sending both would give the filter each motion twice, on two clocks: the kind heard first
+    is read and the other counted (imu_other_stream), which is said once."""
+
+    def __init__(self, say):
+        self.say = say                          # how it is said: a log's notes, a link's log
+        self.kind: str | None = None
+        self._said = False
+
+    def __call__(self, name: str) -> bool:
+        """Whether an IMU message of this type is of the stream read."""
+        if self.kind is None:
+            self.kind = name
+        if name == self.kind:
+            return True
+        if not self._said:
+            self._said = True
+            self.say(f"{name} is sent too: the IMU is read from {self.kind} alone, the one heard first")
+        return False
 
 
 class CompassRepeats:

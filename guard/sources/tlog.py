@@ -17,7 +17,7 @@ from guard.errors import SourceError
 from guard.model.samples import GnssFix, ImuSample, Sample
 from guard.sources.base import LogSource
 from guard.sources.clock import epoch_clock, motion_clock
-from guard.sources.mavlink import WANTED, CompassRepeats, UnixFixes, mavlink, to_sample
+from guard.sources.mavlink import IMU_MESSAGES, WANTED, CompassRepeats, ImuStream, UnixFixes, mavlink, to_sample
 
 V1, V2 = 0xFE, 0xFD
 T_MIN_US, T_MAX_US = 946_684_800_000_000, 4_102_444_800_000_000    # a tlog prefix is unix time: 2000..2100
@@ -111,7 +111,11 @@ class TlogReader(LogSource):
 
     def samples(self) -> Iterator[Sample]:
         clock, repeats, fixes = self._clock, CompassRepeats(), UnixFixes(self.notes.append)
+        imu_stream = ImuStream(self.notes.append)
         for msg in self:
+            if (kind := msg.get_type()) in IMU_MESSAGES and not imu_stream(kind):
+                self.skipped["imu_other_stream"] += 1
+                continue
             sample, reason = to_sample(msg)
             if isinstance(sample, ImuSample):
                 sample = repeats(sample)        # a slower compass's reading, once

@@ -149,6 +149,86 @@ def test_raw_imu_one_zero_magnetometer_axis_is_a_reading():
     assert (sample.mag_x_gauss, sample.mag_y_gauss, sample.mag_z_gauss) == pytest.approx((0.0, 0.0, 0.45))
 
 
+# -- HIGHRES_IMU (PX4) ------------------------------------------------------------------------------
+
+ACC_GYRO, MAG = 0b111111, 0b111 << 6
+
+
+def highres_imu(acc=(0.0, 0.0, -G), gyro=(0.0, 0.0, 0.0), mag=(0.2, -0.016, 0.479), fields=ACC_GYRO | MAG,
+                t_us=5_000_000):
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    return wire(mav.highres_imu_encode(t_us, *acc, *gyro, *mag, 1013.0, 0.0, 0.0, 25.0, fields), mav)
+
+
+def test_highres_imu_units_are_si():
+    sample, reason = to_sample(highres_imu(acc=(9.8, -2.5, -9.7), gyro=(1.0, -0.02, 0.314), mag=(0.5, -0.016, 0.479)))
+    assert reason is None
+    assert isinstance(sample, ImuSample)
+    assert sample.t_us == 5_000_000
+    assert (sample.acc_x_mps2, sample.acc_y_mps2, sample.acc_z_mps2) == pytest.approx((9.8, -2.5, -9.7), rel=1e-6)
+    assert (sample.gyro_x_radps, sample.gyro_y_radps, sample.gyro_z_radps) == pytest.approx((1.0, -0.02, 0.314),
+                                                                                          rel=1e-6)
+    assert (sample.mag_x_gauss, sample.mag_y_gauss, sample.mag_z_gauss) == pytest.approx((0.5, -0.016, 0.479), rel=1e-6)
+
+
+def test_highres_imu_magnetometer_not_marked_new_is_not_a_reading():
+    """PX4 sends its last magnetometer reading with every IMU sample and marks a new one in fields_updated."""
+    sample, reason = to_sample(highres_imu(fields=ACC_GYRO))
+    assert reason is None
+    assert (sample.mag_x_gauss, sample.mag_y_gauss, sample.mag_z_gauss) == (None, None, None)
+    assert sample.acc_z_mps2 == pytest.approx(-G, rel=1e-6)
+
+
+def test_highres_imu_without_fields_updated_is_taken_at_its_values():
+    sample, _ = to_sample(highres_imu(fields=0))
+    assert sample.mag_z_gauss == pytest.approx(0.479, rel=1e-6)
+    sample, _ = to_sample(highres_imu(fields=0, mag=(0.0, 0.0, 0.0)))
+    assert sample.mag_x_gauss is None
+
+
+def test_highres_imu_without_a_new_accelerometer_or_gyro_is_skipped():
+    assert to_sample(highres_imu(fields=MAG | 0b000111)) == (None, "imu_not_new")
+
+
+@pytest.mark.parametrize("acc, gyro", [((math.nan, 0.0, -G), (0.0, 0.0, 0.0)), ((0.0, 0.0, -G), (0.0, math.inf, 0.0))])
+def test_highres_imu_non_finite_is_skipped(acc, gyro):
+    assert to_sample(highres_imu(acc=acc, gyro=gyro)) == (None, "imu_invalid")
+
+
+def test_highres_imu_non_finite_magnetometer_is_no_reading():
+    sample, reason = to_sample(highres_imu(mag=(math.nan, 0.1, 0.4)))
+    assert reason is None and sample.mag_x_gauss is None and sample.acc_z_mps2 == pytest.approx(-G, rel=1e-6)
+
+
+def test_highres_imu_time_past_any_clock_is_skipped():
+    assert to_sample(highres_imu(t_us=2**63))[1] == "time_implausible"
+
+
+def test_sim_as_px4_sends_the_same_reading_as_highres_imu():
+    """The simulator's PX4 output carries RAW_IMU's numbers in SI floats: the two decode alike."""
+    rng = np.random.default_rng(11)
+    raw_enc, px4_enc = Encoder(), Encoder("px4")
+    decoder = mavlink.MAVLink(None)
+    for i in range(50):
+        reading = ImuReading(tuple(rng.normal(0.0, 5.0, 3) + (0.0, 0.0, -G)), tuple(rng.normal(0.0, 1.0, 3)),
+                             tuple(rng.normal(0.0, 0.4, 3)))
+        raw = raw_enc.raw_imu(20_000 * i, reading)
+        msg = decoder.decode(bytearray(px4_enc.pack(raw)))
+        assert msg.get_type() == "HIGHRES_IMU"
+        a, b = to_sample(raw)[0], to_sample(msg)[0]
+        for field in ("t_us", "acc_x_mps2", "acc_y_mps2", "acc_z_mps2", "gyro_x_radps", "gyro_y_radps",
+                      "gyro_z_radps", "mag_x_gauss", "mag_y_gauss", "mag_z_gauss"):
+            assert getattr(b, field) == pytest.approx(getattr(a, field), rel=1e-6, abs=1e-9), field
+
+
+def test_one_imu_stream_is_read_and_the_other_said_once():
+    from guard.sources.mavlink import ImuStream
+    said: list[str] = []
+    stream = ImuStream(said.append)
+    assert [stream(k) for k in ("HIGHRES_IMU", "RAW_IMU", "HIGHRES_IMU", "RAW_IMU")] == [True, False, True, False]
+    assert len(said) == 1 and "RAW_IMU is sent too" in said[0] and "HIGHRES_IMU" in said[0]
+
+
 # -- ATTITUDE and others ---------------------------------------------------------------------------
 
 def test_attitude_units():
