@@ -32,6 +32,7 @@ log = logging.getLogger(__name__)
 
 POLL_S = 0.2            # the loop wakes at least this often (watchdog, heartbeat, link timeout)
 LOG_LOST_REPEAT_S = 60.0    # how often to repeat "MCAP log lost" while it stays lost
+IMU_HINT = " (RAW_IMU: ArduPilot's SRn_RAW_SENS; HIGHRES_IMU: PX4's onboard mode)"   # what to stream
 
 
 class WallClock:
@@ -156,7 +157,8 @@ class Daemon:
     def main_loop(self) -> None:
         # the time each stream last sent a sample (a HEARTBEAT or an ATTITUDE alone is not data), and
         # which streams were last reported silent: an autopilot that streams GNSS but not the IMU
-        # (ArduPilot sends RAW_IMU only when its SRn_RAW_SENS rate is set) is told so
+        # (ArduPilot sends RAW_IMU only when its SRn_RAW_SENS rate is set; PX4 sends HIGHRES_IMU on a link in
+        # its onboard mode, none on a telemetry link) is told so, and where each comes from
         last = dict.fromkeys(("GNSS", "IMU"), time.monotonic())
         silent: set[str] = set()
         timeout = self.cfg.link.link_timeout_s
@@ -177,7 +179,8 @@ class Daemon:
                     self._operator("data is back", level="info")
                 elif quiet - silent:                # a stream fell silent
                     what = "GNSS or IMU" if len(quiet) == 2 else next(iter(quiet))
-                    self._operator(f"no {what} data for {timeout:g} s: waiting{self._other_systems()}")
+                    hint = IMU_HINT if quiet == {"IMU"} else ""
+                    self._operator(f"no {what} data for {timeout:g} s: waiting{hint}{self._other_systems()}")
                 else:                               # one came back, the other is still silent
                     self._operator(f"{next(iter(silent - quiet))} data is back, still no "
                                    f"{next(iter(quiet))} data", level="info")

@@ -243,10 +243,12 @@ def alarm_indices(lines: list[str]) -> list[int]:
     return [int(m.group(1)) for line in lines if "CRITICAL" in line and (m := re.search(r"k=(\d+)", line))]
 
 
-def test_paper_attack_end_to_end(procs, tmp_path):
+@pytest.mark.parametrize("autopilot", ["ardupilot", "px4"])     # RAW_IMU; HIGHRES_IMU, as PX4's onboard link
+def test_paper_attack_end_to_end(procs, tmp_path, autopilot):
     mcap_path = tmp_path / "run.mcap"
     daemon, port = start_daemon(procs, tmp_path, "--mcap", str(mcap_path))
-    sim = procs("sim", "--scenario", "paper", "--seed", "7", "--out", f"udpout:127.0.0.1:{port}", "--speedup", "10")
+    sim = procs("sim", "--scenario", "paper", "--seed", "7", "--out", f"udpout:127.0.0.1:{port}", "--speedup", "10",
+                "--autopilot", autopilot)
     assert sim.wait(60) == 0, sim.stderr
 
     critical = [line for line in sim.stdout if line.startswith("[ground station] CRITICAL:")]
@@ -259,6 +261,9 @@ def test_paper_attack_end_to_end(procs, tmp_path):
 
     daemon.p.send_signal(signal.SIGTERM)
     assert daemon.wait(15) == 0, daemon.stderr
+    stopped = [line for line in daemon.stdout if "stopped after" in line]
+    samples = int(re.search(r"stopped after (\d+) samples", stopped[-1]).group(1))
+    assert samples >= 0.95 * 2 * 801, f"the daemon saw {samples} samples of 801 fixes and 801 IMU samples"
     summary, topics = read_mcap(mcap_path)
     assert summary is not None and summary.statistics.message_count > 0
     alarms = [json.loads(data) for _, data in topics.get("/alarms", [])]
@@ -728,6 +733,8 @@ def test_a_link_without_the_imu_stream_says_so(caplog):
         assert g.d.samples >= 15, "the fixes reached the daemon"
     warnings = texts(got, WARNING)
     assert any("no IMU data for 0.5 s" in t for t in warnings), texts(got)
+    # in chunks, a ground station joins them: what to stream, for either autopilot
+    assert "SRn_RAW_SENS; HIGHRES_IMU: PX4's onboard mode" in "".join(warnings), warnings
     # a loaded machine may hold this test's sender back past the timeout: the daemon is then right to
     # say the GNSS fell silent too; only when every fix went out in time must the warning spare it
     if max(b - a for a, b in zip(sent, sent[1:])) < 0.35:
