@@ -103,6 +103,7 @@ class Monitor:
         self.tilt = Tilt()                          # the autopilot's roll and pitch, at each IMU sample's time
         self.inertial: bool | None = None           # None until the IMU's rate is known; False: too slow
         self.imu_rate = StreamRate()
+        self._imu_slow = False                      # judged too slow: watched, in case it comes faster
         self.compass = CompassWatch()               # whether an air vehicle has a compass at all
         self._last_mag: tuple[float, float] | None = None     # levelled (m_x, m_y) of the latest IMU sample
         self._learnt: Learnt | None = None          # what a restarted filter keeps of the vehicle (_reinitialise)
@@ -413,15 +414,23 @@ class Monitor:
     def _imu_rate(self, t_us: int) -> list[Event]:
         """An IMU stream slower than min_imu_hz (telemetry sends RAW_IMU at 1 to 4 Hz) cannot be
         integrated: GNSS position and velocity are then tested against each other alone, the heading
-        held (said once)."""
-        if self.inertial is not None:
+        held (said once). One that comes faster later (guard asked the autopilot for more,
+        guard.sources.rates, or a ground station did) is integrated from then on: a new filter, which
+        keeps what the old one learnt of the vehicle."""
+        if self.inertial is not None and not self._imu_slow:
             return []
         hz = self.imu_rate.add(t_us)
         if hz is None:
             return []
+        if self._imu_slow:
+            if hz < self.cfg.min_imu_hz or self.compass.absent:
+                return []
+            self._imu_slow, self.inertial = False, True
+            return self._reinitialise(t_us, f"IMU now at {hz:.1f} Hz: integrated", keep_learnt=True)
         self.inertial = hz >= self.cfg.min_imu_hz
         if self.inertial:
             return []
+        self._imu_slow = True
         if self.ekf is not None:
             self.ekf.hold_heading()
             self._heading_unset = False

@@ -370,3 +370,22 @@ def test_a_receiver_still_finding_itself_is_not_started_on(seed):
     finally:
         gnss.START_H_ACC_M = keep
     assert [a for a in of(events, Alarm) if a.sensor == "gnss_pos"], "started on the coarse fixes, no alarm?"
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_an_imu_stream_that_comes_faster_later_is_integrated_from_then_on(seed):
+    """Telemetry at 1 Hz until the autopilot is asked for more (guard.sources.rates), then 50 Hz: GNSS
+    alone first, said once; then a new filter that integrates the IMU, said once, no alarm; and the
+    IMU is really integrated: a gyro bias from 90 s is caught, on the heading."""
+    from guard.model.samples import ImuSample
+    bias = (lambda t: 0.05 if t >= 90.0 else 0.0)
+    samples = [s for s in drive(120.0, seed=seed, yaw=0.3, gyro_bias=bias)
+               if not (isinstance(s, ImuSample) and s.t_us < T0_US + 20_000_000 and (s.t_us - T0_US) % 1_000_000)]
+    mon, events = run(samples, GROUND)
+    texts = [e.text for e in of(events, Notice)]
+    assert sum("not integrated" in t for t in texts) == 1, texts
+    assert sum("IMU now at 50.0 Hz: integrated" in t for t in texts) == 1, texts
+    assert mon.inertial is True and 15 <= mon.skipped["imu_too_slow"] <= 25, mon.skipped
+    alarms = of(events, Alarm)
+    assert alarms and alarms[0].t_us >= T0_US + 90_000_000 and alarms[0].sensor in ("gyro", "mag"), alarms[:2]
+    assert alarms[0].t_us - (T0_US + 90_000_000) < 3_000_000

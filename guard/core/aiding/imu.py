@@ -19,6 +19,7 @@ of that kind does cannot loosen the test that is to find it.
 from __future__ import annotations
 
 import math
+from collections import deque
 
 import numpy as np
 
@@ -117,13 +118,12 @@ class ImuNoise:
 
 
 class StreamRate:
-    """A stream's rate, judged once from its first SAMPLES intervals (the median: a gap or a burst
-    does not decide it)."""
+    """A stream's rate, from its last SAMPLES intervals (the median: a gap or a burst does not decide it)."""
 
     SAMPLES = 5
 
     def __init__(self):
-        self.times: list[int] = []
+        self.times: deque[int] = deque(maxlen=self.SAMPLES + 1)
 
     def add(self, t_us: int) -> float | None:
         """The rate in Hz once known (None before)."""
