@@ -35,6 +35,8 @@ class LinkConfig:
     gcs: str = ""                           # a second link guard's STATUSTEXT, HEARTBEAT and grd_ratio go to as
                                             # well (udpout:HOST:PORT): a ground station behind a router that
                                             # forwards them only to the autopilot (MAVProxy); "" none
+    request_rates: bool = True              # ask the autopilot for the streams read, at rates guard can use
+                                            # (guard.sources.rates); false: ask nothing
 
 
 @dataclass(frozen=True)

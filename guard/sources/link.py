@@ -46,6 +46,7 @@ from guard.errors import ConfigError, SourceError   # noqa: E402
 from guard.model.samples import GnssFix, ImuSample   # noqa: E402
 from guard.sources import framing                   # noqa: E402
 from guard.sources.mavlink import IMU_MESSAGES, CompassRepeats, ImuStream, UnixFixes, to_sample   # noqa: E402
+from guard.sources.rates import StreamRates         # noqa: E402
 
 log = logging.getLogger(__name__)
 
@@ -146,7 +147,7 @@ def refuse_taken_port(url: str) -> None:
 
 
 class MavlinkLink:
-    def __init__(self, url: str, cfg):
+    def __init__(self, url: str, cfg, min_imu_hz: float = 8.0):
         self.cfg = cfg
         self.system_id = cfg.system_id
         self.skipped: Counter[str] = Counter()
@@ -156,6 +157,9 @@ class MavlinkLink:
         self.repeats = CompassRepeats()             # a slower compass's reading, once
         self.unix_fixes = UnixFixes(log.warning)    # fixes stamped in UNIX time, on the boot clock
         self.imu_stream = ImuStream(log.warning)    # RAW_IMU (ArduPilot) or HIGHRES_IMU (PX4), not both
+        # the streams guard reads, asked of the autopilot at rates it can use (guard.sources.rates)
+        self.rates = StreamRates(log.warning, lambda: self.imu_stream.kind, min_imu_hz) \
+            if cfg.request_rates else None
         refuse_taken_port(url)
         try:
             self.conn = mavutil.mavlink_connection(url, source_system=cfg.system_id or 1,
@@ -199,6 +203,9 @@ class MavlinkLink:
     def poll(self, timeout: float):
         """The next sample from the autopilot, or None after `timeout` seconds without one."""
         deadline = time.monotonic() + timeout
+        if self.rates is not None:
+            for request in self.rates.due(time.monotonic()):
+                self.send(request)
         while True:
             while self._pending:
                 sample = self._take(self._pending.popleft())
@@ -311,6 +318,8 @@ class MavlinkLink:
 
     def _take(self, msg):
         """A decoded message to a sample, or None (counted when skipped)."""
+        if self.rates is not None:
+            self.rates.heard(msg, time.monotonic())
         if (kind := msg.get_type()) not in WANTED:
             return None
         if kind in IMU_MESSAGES and not self.imu_stream(kind):

@@ -33,7 +33,7 @@ def open_link(url: str, cfg):
                          timeout_s=cfg.link.link_timeout_s, time_source=c.time_source)
     if kind == "serial":
         check_serial_device(url.partition(",")[0])
-    return MavlinkLink(url, cfg.link)
+    return MavlinkLink(url, cfg.link, cfg.monitor.min_imu_hz)
 
 
 def check_url(url: str) -> str:

@@ -1,0 +1,173 @@
+"""Asking the autopilot for its streams (guard.sources.rates): what is asked, when, and of whom.
+
+The messages heard are real pymavlink messages, and what is asked is packed by a real pymavlink
+MAVLink object and decoded again; only the clock is the test's, so that seconds pass at once.
+"""
+
+import guard.sources.mavlink  # noqa: F401  (sets MAVLINK20=1 before pymavlink is imported)
+import pytest
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from guard.sources import rates
+
+AP, PX4 = mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, mavlink.MAV_AUTOPILOT_PX4
+
+
+class Autopilot:
+    """Builds the autopilot's messages (system 1, component 1) and decodes what guard asks of it."""
+
+    def __init__(self, autopilot=AP):
+        self.mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+        self.autopilot = autopilot
+        self.guard = mavlink.MAVLink(None, srcSystem=1, srcComponent=191)
+        self.sent: list[bytes] = []
+        self.guard.file = self            # guard's packed frames land in self.sent
+
+    def write(self, buf):
+        self.sent.append(bytes(buf))
+
+    def _wire(self, msg):
+        return mavlink.MAVLink(None).decode(bytearray(msg.pack(self.mav)))
+
+    def heartbeat(self):
+        return self._wire(self.mav.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR, self.autopilot, 0, 0, 4))
+
+    def gps(self, t_s):
+        return self._wire(self.mav.gps_raw_int_encode(int(t_s * 1e6), 3, 0, 0, 0, 100, 100, 0, 0, 10))
+
+    def raw_imu(self, t_s):
+        return self._wire(self.mav.raw_imu_encode(int(t_s * 1e6), 0, 0, -1000, 0, 0, 0, 200, 0, 400))
+
+    def highres_imu(self, t_s):
+        return self._wire(self.mav.highres_imu_encode(int(t_s * 1e6), 0, 0, -9.8, 0, 0, 0, 0.2, 0, 0.4,
+                                                      1013, 0, 0, 20, 0b111111111))
+
+    def attitude(self, t_s):
+        return self._wire(self.mav.attitude_encode(int(t_s * 1e3), 0, 0, 0, 0, 0, 0))
+
+    def asked(self, requests) -> list[tuple]:
+        """The requests, sent and decoded: (command or message, message id or group, rate in Hz)."""
+        out = []
+        for request in requests:
+            request(self.guard)
+            msg = mavlink.MAVLink(None).decode(bytearray(self.sent.pop()))
+            if msg.get_type() == "COMMAND_LONG":
+                assert (msg.target_system, msg.target_component) == (1, 1)
+                assert msg.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL
+                out.append(("interval", mavlink.mavlink_map[int(msg.param1)].msgname, round(1e6 / msg.param2, 3)))
+            else:
+                assert msg.get_type() == "REQUEST_DATA_STREAM" and msg.start_stop == 1
+                out.append(("group", msg.req_stream_id, msg.req_message_rate))
+        return out
+
+
+def stream(r: rates.StreamRates, ap: Autopilot, t0: float, t1: float, hz: dict, imu="raw_imu"):
+    """Feed the streams at these rates (Hz of the vehicle's clock, which here is the wall's) from t0 to t1,
+    a heartbeat each second."""
+    events = [(t0 + k, "heartbeat") for k in range(int(t1 - t0) + 1)]
+    for kind, f in hz.items():
+        events += [(t0 + k / f, kind) for k in range(int((t1 - t0) * f))]
+    for t, kind in sorted(events):
+        r.heard(getattr(ap, imu if kind == "imu" else kind)(t) if kind != "heartbeat" else ap.heartbeat(), t)
+
+
+def test_slow_streams_are_asked_for_after_watching_them():
+    ap, said = Autopilot(), []
+    r = rates.StreamRates(said.append)
+    stream(r, ap, 0.0, rates.WATCH_S - 0.5, {"gps": 1, "imu": 2, "attitude": 4})
+    assert r.due(rates.WATCH_S - 0.5) == [], "asked before watching for WATCH_S"
+    stream(r, ap, rates.WATCH_S - 0.5, rates.WATCH_S + 0.1, {"gps": 1, "imu": 2, "attitude": 4})
+    assert sorted(ap.asked(r.due(rates.WATCH_S + 0.1))) == [
+        ("interval", "ATTITUDE", rates.ATTITUDE_HZ), ("interval", "GPS_RAW_INT", rates.GNSS_HZ),
+        ("interval", "RAW_IMU", rates.IMU_HZ)]
+    assert said == []
+
+
+def test_streams_fast_enough_are_never_asked_for_less():
+    ap = Autopilot()
+    r = rates.StreamRates(lambda text: None)
+    stream(r, ap, 0.0, 4.0, {"gps": 5, "imu": 200, "attitude": 50})      # a 5 Hz receiver is left alone
+    assert r.due(4.0) == []
+    stream(r, ap, 4.0, 30.0, {"gps": 5, "imu": 200, "attitude": 50})
+    assert r.due(30.0) == []
+
+
+def test_asked_again_then_the_imu_that_did_not_come_is_said_once():
+    ap, said = Autopilot(), []
+    r = rates.StreamRates(said.append)
+    t, tries = 0.0, []
+    while t < 60.0:
+        stream(r, ap, t, t + 0.5, {"gps": 5, "imu": 2, "attitude": 20})
+        t += 0.5
+        if asked := r.due(t):
+            tries.append(ap.asked(asked))
+    assert len(tries) == rates.TRIES
+    assert tries[0] == [("interval", "RAW_IMU", rates.IMU_HZ)]
+    # later tries add ArduPilot's stream group (SRn_RAW_SENS), which older firmware answers instead
+    assert tries[1] == [("interval", "RAW_IMU", rates.IMU_HZ), ("group", mavlink.MAV_DATA_STREAM_RAW_SENSORS, 50)]
+    assert len(said) == 1 and said[0].startswith("RAW_IMU at 2.0 Hz though asked for 50 Hz") and "SRn_RAW_SENS" in said[0]
+
+
+def test_an_imu_raised_but_not_to_50_hz_and_fast_enough_to_integrate_is_not_said():
+    ap, said = Autopilot(), []
+    r = rates.StreamRates(said.append, enough_hz=8.0)
+    for t in range(0, 60):
+        stream(r, ap, float(t), t + 1.0, {"gps": 5, "imu": 25, "attitude": 20})
+        r.due(t + 1.0)
+    assert said == []
+
+
+def test_px4_is_asked_for_highres_imu():
+    ap = Autopilot(PX4)
+    r = rates.StreamRates(lambda text: None)
+    stream(r, ap, 0.0, 3.5, {"gps": 5, "attitude": 20})      # PX4's normal mode: no IMU stream at all
+    assert ap.asked(r.due(3.5)) == [("interval", "HIGHRES_IMU", rates.IMU_HZ)]
+    for t in range(4, 30):
+        stream(r, ap, float(t), t + 1.0, {"gps": 5, "attitude": 20})
+        assert all(kind == "interval" for kind, *_ in ap.asked(r.due(t + 1.0))), "REQUEST_DATA_STREAM sent to PX4"
+
+
+def test_the_imu_the_vehicle_sends_is_the_one_asked_for():
+    """An ArduPilot that sends HIGHRES_IMU (a vehicle that was set up so) is asked for HIGHRES_IMU."""
+    ap = Autopilot(AP)
+    r = rates.StreamRates(lambda text: None, imu_kind=lambda: "HIGHRES_IMU")
+    stream(r, ap, 0.0, 3.5, {"gps": 5, "imu": 4, "attitude": 20}, imu="highres_imu")
+    assert ap.asked(r.due(3.5)) == [("interval", "HIGHRES_IMU", rates.IMU_HZ)]
+
+
+def test_resent_fixes_count_once():
+    """ArduPilot resends its last fix at the stream's rate: a 1 Hz receiver streamed at 10 Hz is 1 Hz."""
+    ap = Autopilot()
+    r = rates.StreamRates(lambda text: None)
+    for k in range(40):
+        r.heard(ap.gps(k // 10), k / 10)
+    assert r.rate("GPS_RAW_INT", 3.9) == pytest.approx(1.0)
+
+
+def test_rates_are_on_the_vehicles_clock_not_the_links():
+    """A burst (a link that held messages back) is not a fast stream."""
+    ap = Autopilot()
+    r = rates.StreamRates(lambda text: None)
+    for k in range(10):
+        r.heard(ap.raw_imu(k * 0.5), 2.0 + k * 0.001)      # 10 samples at 2 Hz, arriving within 10 ms
+    assert r.rate("RAW_IMU", 2.1) == pytest.approx(2.0)
+
+
+def test_asked_again_after_the_autopilot_restarts():
+    ap = Autopilot()
+    r = rates.StreamRates(lambda text: None)
+    t = 0.0
+    while t < 40.0:
+        stream(r, ap, t, t + 0.5, {"gps": 1, "imu": 50, "attitude": 20})
+        t += 0.5
+        r.due(t)
+    assert r.due(t) == []                                   # done: the GNSS did not come faster
+    stream(r, ap, t + 10.0, t + 10.0 + rates.WATCH_S + 0.5, {"gps": 1, "imu": 50, "attitude": 20})
+    assert ap.asked(r.due(t + 10.0 + rates.WATCH_S + 0.5)) == [("interval", "GPS_RAW_INT", rates.GNSS_HZ)]
+
+
+def test_an_autopilot_of_another_kind_is_not_asked():
+    ap = Autopilot(mavlink.MAV_AUTOPILOT_GENERIC)
+    r = rates.StreamRates(lambda text: None)
+    stream(r, ap, 0.0, 10.0, {"gps": 1, "imu": 1})
+    assert r.due(10.0) == []
