@@ -122,9 +122,14 @@ def _sim(args) -> int:
         names = {2: "CRITICAL", 4: "WARNING", 5: "NOTICE", 6: "INFO"}
         print(f"[ground station] {names.get(msg.severity, msg.severity)}: {msg.text}", flush=True)
 
+    def asked(name: str, interval_us: int) -> None:
+        rate = "off" if interval_us < 0 else "the port's default" if interval_us == 0 else f"{1e6 / interval_us:g} Hz"
+        print(f"[autopilot] {name} at {rate}, as asked", flush=True)
+
     try:
         truth = run(sc, args.seed, tlog=args.tlog, out=args.out, speedup=args.speedup, fast=args.fast,
-                    on_statustext=show, can=can, bin=args.bin, ulg=args.ulg, autopilot=args.autopilot)
+                    on_statustext=show, can=can, bin=args.bin, ulg=args.ulg, autopilot=args.autopilot,
+                    stream_hz=args.stream_hz, on_request=asked)
     finally:
         if can:
             can.close()
@@ -268,6 +273,9 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("--autopilot", choices=("ardupilot", "px4"), default="ardupilot",
                    help="how the tlog and the live link send the IMU: ardupilot, RAW_IMU (default); px4, "
                         "HIGHRES_IMU, as PX4's onboard link does")
+    r.add_argument("--stream-hz", type=float, default=0.0,
+                   help="live: send GPS_RAW_INT and the IMU at most this often until asked for more "
+                        "(MAV_CMD_SET_MESSAGE_INTERVAL), as an autopilot's port at its default rates; 0: every sample")
     r.set_defaults(func=_sim)
 
     r = command("demo", help="simulator and daemon on UDP loopback: watch the attack being caught")

@@ -106,14 +106,62 @@ class TlogWriter:
 
 
 class LiveLink:
-    """A pymavlink connection: sends our frames and hands back STATUSTEXT from other systems."""
+    """A pymavlink connection: sends our frames and hands back STATUSTEXT from other systems.
 
-    def __init__(self, url: str, encoder: Encoder):
+    As an autopilot's port, it may send GPS_RAW_INT and the IMU slower than the run makes them
+    (`stream_hz`: at most that often, a port's default rates) until asked for more: a
+    MAV_CMD_SET_MESSAGE_INTERVAL to this system sets a message's interval (0: back to the port's
+    default, -1: off) and is acknowledged; each one honoured is passed to `on_request(name, interval_us)`.
+    """
+
+    def __init__(self, url: str, encoder: Encoder, stream_hz: float = 0.0, on_request=None):
         self.conn = mavutil.mavlink_connection(url, source_system=SYSTEM_ID, source_component=COMPONENT_ID,
                                                dialect="ardupilotmega", autoreconnect=True)
         self.encoder = encoder
+        self.default_us = {n: 1e6 / stream_hz for n in ("GPS_RAW_INT", "RAW_IMU")} if stream_hz > 0 else {}
+        self.interval_us = dict(self.default_us)       # message name -> at least this long between two
+        self.last_us: dict[str, int] = {}
+        self.on_request = on_request
+
+    def _due(self, t_us: int, name: str) -> bool:
+        """Whether a message of this name goes out at t_us (a port's rate: the run's samples, thinned)."""
+        if name == "HIGHRES_IMU":
+            name = "RAW_IMU"
+        interval = self.interval_us.get(name)
+        if interval is None:
+            return True
+        last = self.last_us.get(name)
+        if interval < 0 or last is not None and t_us - last < interval - 500:    # 0.5 ms: the run's sample grid
+            return False
+        self.last_us[name] = t_us
+        return True
+
+    def _command(self, msg) -> None:
+        """A SET_MESSAGE_INTERVAL for this system: honoured and acknowledged."""
+        if msg.command != mavlink.MAV_CMD_SET_MESSAGE_INTERVAL or msg.target_system != SYSTEM_ID:
+            return
+        entry = mavlink.mavlink_map.get(int(msg.param1))
+        result = mavlink.MAV_RESULT_DENIED
+        if entry is not None:
+            name = "RAW_IMU" if entry.msgname == "HIGHRES_IMU" else entry.msgname
+            interval = int(msg.param2)
+            if interval == 0:
+                self.interval_us.pop(name, None)
+                if name in self.default_us:
+                    self.interval_us[name] = self.default_us[name]
+            else:
+                self.interval_us[name] = interval
+            result = mavlink.MAV_RESULT_ACCEPTED
+            if self.on_request:
+                self.on_request(entry.msgname, interval)
+        try:
+            self.conn.write(self.encoder.pack(self.encoder.mav.command_ack_encode(msg.command, result)))
+        except OSError:
+            pass
 
     def send(self, t_us: int, msg) -> None:
+        if not self._due(t_us, msg.get_type()):
+            return
         try:
             self.conn.write(self.encoder.pack(msg))
         except OSError:
@@ -121,8 +169,11 @@ class LiveLink:
 
     def receive(self, timeout_s: float):
         """Wait up to timeout_s for a STATUSTEXT from another system; None when none came."""
-        msg = self.conn.recv_match(type="STATUSTEXT", blocking=True, timeout=max(0.0, timeout_s))
+        msg = self.conn.recv_match(type=["STATUSTEXT", "COMMAND_LONG"], blocking=True, timeout=max(0.0, timeout_s))
         if msg is not None and msg.get_srcSystem() == SYSTEM_ID and msg.get_srcComponent() == COMPONENT_ID:
+            return None
+        if msg is not None and msg.get_type() == "COMMAND_LONG":
+            self._command(msg)
             return None
         return msg
 

@@ -168,7 +168,8 @@ def _log_writer(kind: str, path: str):
 
 def run(scenario: Scenario, seed: int, *, tlog: str | None = None, out: str | None = None,
         speedup: float = 1.0, fast: bool = False, on_statustext=None, can=None,
-        bin: str | None = None, ulg: str | None = None, autopilot: str = "ardupilot") -> dict:
+        bin: str | None = None, ulg: str | None = None, autopilot: str = "ardupilot", stream_hz: float = 0.0,
+        on_request=None) -> dict:
     """Run a scenario to the end; returns the truth record (and writes NAME.truth.json beside each
     log file).
 
@@ -177,12 +178,15 @@ def run(scenario: Scenario, seed: int, *, tlog: str | None = None, out: str | No
     CAN) is paced at `speedup` times real time unless `fast`; a tlog alone is written at once. `on_statustext(msg)` is called for every STATUSTEXT received on `out`.
     `can` is an object with send_gnss/send_imu/send_mag (guard_sim.canbus.CanPublisher) or None.
     `autopilot` "px4" sends the tlog's and the live link's IMU as PX4 does, HIGHRES_IMU (mavout.Encoder).
+    `stream_hz` > 0: the live link sends GPS_RAW_INT and the IMU at most that often until asked for more,
+    as an autopilot's port at its default rates; `on_request(name, interval_us)` for each request
+    honoured (mavout.LiveLink).
     """
     sim = Simulation(scenario, seed, autopilot)
     writers = [TlogWriter(tlog, sim.encoder)] if tlog else []
     files = {k: p for k, p in (("bin", bin), ("ulg", ulg)) if p}
     writers += [_log_writer(k, p) for k, p in files.items()]
-    link = LiveLink(out, sim.encoder) if out else None
+    link = LiveLink(out, sim.encoder, stream_hz, on_request) if out else None
     paced = (link is not None or can is not None) and not fast
     wall0 = time.monotonic()
     try:

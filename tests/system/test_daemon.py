@@ -276,6 +276,41 @@ def test_paper_attack_end_to_end(procs, tmp_path, autopilot):
     assert any(r.level == Log.ERROR and "ALARM" in r.message for r in records), records
 
 
+def paper_at_1_hz(procs, tmp_path: Path, autopilot: str, ask: bool) -> tuple[list[str], list[str]]:
+    """The paper's run from an autopilot whose port sends GPS_RAW_INT and the IMU at 1 Hz until asked
+    for more: what the simulator printed, and what the daemon did (link.request_rates = ask)."""
+    config = tmp_path / f"ask-{ask}.toml"
+    config.write_text(f"[link]\nrequest_rates = {str(ask).lower()}\n")
+    daemon, port = start_daemon(procs, tmp_path, "--config", str(config))
+    sim = procs("sim", "--scenario", "paper", "--seed", "2", "--out", f"udpout:127.0.0.1:{port}", "--speedup", "10",
+                "--stream-hz", "1", "--autopilot", autopilot)
+    assert sim.wait(60) == 0, sim.stderr
+    daemon.p.send_signal(signal.SIGTERM)
+    assert daemon.wait(15) == 0, daemon.stderr
+    return sim.stdout, daemon.stdout + daemon.stderr
+
+
+@pytest.mark.parametrize("autopilot, imu", [("ardupilot", "RAW_IMU"), ("px4", "HIGHRES_IMU")])
+def test_an_autopilot_streaming_at_1_hz_is_asked_for_more(procs, tmp_path, autopilot, imu):
+    """guard asks for more (MAV_CMD_SET_MESSAGE_INTERVAL), the simulator honours it and acknowledges,
+    and guard integrates the IMU from then on; the paper's attack at 40 s is caught at 40 s."""
+    sim_out, daemon_out = paper_at_1_hz(procs, tmp_path, autopilot, ask=True)
+    assert f"[autopilot] {imu} at 50 Hz, as asked" in sim_out, sim_out
+    assert "[autopilot] GPS_RAW_INT at 10 Hz, as asked" in sim_out, sim_out
+    assert any("IMU now at 10.0 Hz: integrated" in line for line in daemon_out), daemon_out
+    alarm = next(line for line in daemon_out if "GUARD ALARM" in line)
+    assert "gnss_pos north" in alarm and re.search(r"t=40\.\d\d s", alarm), alarm
+
+
+def test_with_request_rates_off_nothing_is_asked(procs, tmp_path):
+    """The control: nothing asked, the IMU stays at 1 Hz and is not integrated."""
+    sim_out, daemon_out = paper_at_1_hz(procs, tmp_path, "ardupilot", ask=False)
+    assert not any(line.startswith("[autopilot]") for line in sim_out), sim_out
+    assert not any("IMU now at" in line for line in daemon_out), daemon_out
+    stopped = next(line for line in daemon_out if "stopped after" in line)
+    assert "'imu_too_slow'" in stopped, stopped
+
+
 def test_clean_run_end_to_end_no_alarm(procs, tmp_path):
     text = (SCENARIOS / "clean.toml").read_text()
     text, n = re.subn(r"(?m)^duration_s\s*=.*$", "duration_s = 90.0", text)
