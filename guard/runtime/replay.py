@@ -48,8 +48,8 @@ def replay(path: str, cfg: Config | None = None, *, listeners=(), progress: bool
     Trace, an McapLog). `imu`, `gnss`: which instance, in a log that holds several (None: the
     primary). `inject`: a function of the log's sample stream that returns the stream the core is
     to see (an attack written into a real flight, tools/real_logs.py --attack). A log from which no
-    GNSS fix could be read is a SourceError saying what was found: never a clean-looking report of
-    nothing.
+    GNSS fix could be read, or only messages without a 3D fix, is a SourceError saying what was found:
+    never a clean-looking report of nothing.
     """
     cfg = cfg or Config()
     options = {k: v for k, v in (("imu", imu), ("gnss", gnss)) if v is not None}
@@ -70,6 +70,8 @@ def replay(path: str, cfg: Config | None = None, *, listeners=(), progress: bool
     out = report.report(source, monitor, cfg.monitor.detector)
     if not out["samples"].get("gnss"):
         raise SourceError(f"{path}: no GNSS sample could be read: {nothing_read(out)}")
+    if out["samples"]["gnss"] == out["skipped"].get("gnss_no_fix", 0):     # a bench test, a flight indoors
+        raise SourceError(f"{path}: no GNSS message with a 3D fix, nothing to monitor: {nothing_read(out)}")
     return out
 
 

@@ -104,6 +104,22 @@ def nothing_found(path: str) -> str:
     return str(e.value)
 
 
+def test_a_log_whose_receiver_never_had_a_fix_is_an_error_not_a_clean_report(tmp_path):
+    """A bench test or a flight indoors: GPS_RAW_INT throughout, never a 3D fix. Nothing was
+    monitored, and the replay says so instead of reporting no alarm."""
+    sim, out = Simulation(dataclasses.replace(scn.load("paper"), duration_s=10.0), 1), b""
+    enc = sim.encoder
+    for t_us, messages in sim.ticks():
+        for msg in messages:
+            if msg.get_type() == "GPS_RAW_INT":
+                msg = enc.gps_raw_int(t_us, 0.0, 0.0, 0.0, 0.0, 0.0, 99.0, 9.9, fix_type=1)
+            out += struct.pack(">Q", TLOG_EPOCH_US + t_us) + enc.pack(msg)
+    path = write(tmp_path, "bench.tlog", out)
+    with pytest.raises(SourceError, match="no GNSS message with a 3D fix, nothing to monitor") as e:
+        replay(path)
+    assert path in str(e.value) and "101 gnss_no_fix" in str(e.value), str(e.value)
+
+
 def test_random_bytes(tmp_path):
     data = np.random.default_rng(42).integers(0, 256, 20_000, dtype=np.uint8).tobytes()
     assert "garbage_bytes" in nothing_found(write(tmp_path, "random.tlog", data))
