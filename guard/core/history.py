@@ -104,6 +104,15 @@ class History:
         for _, x in self.states:
             x += dx
 
+    def anchored(self) -> None:
+        """The estimate was set to a fix (a re-anchoring): a rewind goes no further back than it, and a
+        late fix is compared with the states from it on. The states before it are the estimate that
+        could not be held: moved by the anchor's correction they would keep its runaway velocity, and
+        the next late fix would meet it and alarm again at once."""
+        self.epochs.clear()
+        self.imu_log.clear()
+        self.states.clear()
+
     def rewind(self, ekf: NavEKF, epochs: int, now_us: int) -> None:
         """Undo the last `epochs` GNSS epochs: back to the filter before the attack's first sample was
         fused, then the IMU fusions since, GNSS left out, and predict to now. The bias states come back

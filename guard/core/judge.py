@@ -149,9 +149,8 @@ class Judge:
         sigma = math.sqrt(ekf.P[X, X] + ekf.P[Y, Y])
         if sigma <= max_coast_m:
             return []
-        anchor(ekf, fix, en, gnss_aid.sigma_pos(fix), gnss_aid.sigma_vel(fix))
-        self.history.epochs.clear()                 # a rewind goes no further back than the anchor
-        self.history.imu_log.clear()
+        anchor(ekf, fix, en, gnss_aid.sigma_pos(fix), gnss_aid.sigma_vel(fix), self.history.delay_s)
+        self.history.anchored()
         # said as a warning once per alarm: for a standing alarm going on (each sensor excluded by an alarm
         # of its own is), it is the same news
         own = [s for s in RECEIVER if s in self.health.excluded and s not in self.health.with_receiver]
