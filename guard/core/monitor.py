@@ -34,7 +34,7 @@ from guard.core.aiding.compass import NO_COMPASS_S, CompassWatch
 from guard.core.aiding.gnss import START_H_ACC_M, START_HDOP, FreezeWatch, GnssAiding
 from guard.core.aiding.impact import BUDGET_S, HOLD_S, IMPACT_G, MEAN_S, WINDOW_S, Impact
 from guard.core.aiding.tilt import Tilt
-from guard.core.aiding.imu import Averager, ImuAiding, StreamRate, fuse_rows, heading, level
+from guard.core.aiding.imu import Averager, ImuAiding, RateWatch, fuse_rows, heading, level
 from guard.core.anchor import Learnt, diverged, initial_state
 from guard.core.detectors import DetectorConfig, make_detector
 from guard.core.ekf import BM, TH, VX, VY, FilterConfig, NavEKF
@@ -102,8 +102,7 @@ class Monitor:
         self.gnss_index = -1
         self.tilt = Tilt()                          # the autopilot's roll and pitch, at each IMU sample's time
         self.inertial: bool | None = None           # None until the IMU's rate is known; False: too slow
-        self.imu_rate = StreamRate()
-        self._imu_slow = False                      # judged too slow: watched, in case it comes faster
+        self.imu_rate = RateWatch(self.cfg.min_imu_hz)
         self.compass = CompassWatch()               # whether an air vehicle has a compass at all
         self._last_mag: tuple[float, float] | None = None     # levelled (m_x, m_y) of the latest IMU sample
         self._learnt: Learnt | None = None          # what a restarted filter keeps of the vehicle (_reinitialise)
@@ -414,28 +413,30 @@ class Monitor:
     def _imu_rate(self, t_us: int) -> list[Event]:
         """An IMU stream slower than min_imu_hz (telemetry sends RAW_IMU at 1 to 4 Hz) cannot be
         integrated: GNSS position and velocity are then tested against each other alone, the heading
-        held (said once). One that comes faster later (guard asked the autopilot for more,
-        guard.sources.rates, or a ground station did) is integrated from then on: a new filter, which
-        keeps what the old one learnt of the vehicle."""
-        if self.inertial is not None and not self._imu_slow:
+        held (said). One that comes faster later (guard asked the autopilot for more,
+        guard.sources.rates) is integrated from then on: a new filter, which keeps what the old one
+        learnt of the vehicle. One that slows later is no longer integrated (RateWatch)."""
+        judged = self.imu_rate.add(t_us)
+        if judged is None:
             return []
-        hz = self.imu_rate.add(t_us)
-        if hz is None:
-            return []
-        if self._imu_slow:
-            if hz < self.cfg.min_imu_hz or self.compass.absent:
+        fast, hz, first = judged
+        if fast:
+            if first:
+                self.inertial = True
                 return []
-            self._imu_slow, self.inertial = False, True
+            if self.inertial is not False or self.compass.absent:     # not integrated for want of a compass
+                return []
+            self.inertial = True
             return self._reinitialise(t_us, f"IMU now at {hz:.1f} Hz: integrated", keep_learnt=True)
-        self.inertial = hz >= self.cfg.min_imu_hz
-        if self.inertial:
+        if self.inertial is False and not first:    # already not integrated (no compass)
             return []
-        self._imu_slow = True
+        self.inertial = False
         if self.ekf is not None:
             self.ekf.hold_heading()
             self._heading_unset = False
-        return [Notice(t_us, "warning", f"IMU at {hz:.1f} Hz, under {self.cfg.min_imu_hz:g} Hz: not integrated; "
-                       "GNSS position and velocity are tested against each other alone (jumps, freezes, drifts)")]
+        return [Notice(t_us, "warning", f"IMU {'at' if first else 'now at'} {hz:.1f} Hz, under "
+                       f"{self.cfg.min_imu_hz:g} Hz: not integrated; GNSS position and velocity are tested against "
+                       "each other alone (jumps, freezes, drifts)")]
 
     # -- testing and fusing -----------------------------------------------------------------------
     def _measure(self, sensor: Sensor, t_us: int, aid: Aid) -> list[Event]:

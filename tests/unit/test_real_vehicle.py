@@ -411,3 +411,28 @@ def test_a_late_receiver_re_anchored_on_is_followed_not_alarmed_on_again(seed):
     assert len(anchors) == 1, [(e.t_us, e.text) for e in anchors]
     last = of(events, Estimate)[-1]
     assert math.hypot(last.east_m - last.fix_en[0] + late[0], last.north_m - last.fix_en[1] + late[1]) < 1.0
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_an_imu_stream_that_slows_later_is_no_longer_integrated_until_it_comes_back(seed):
+    """50 Hz, then 5 Hz from 40 to 70 s (a ground station on the same port lowered it), then 50 Hz:
+    integrated, then GNSS alone (said), then integrated again by a new filter (said); a gap of one
+    sample is none of these; and no alarm."""
+    from guard.model.samples import ImuSample
+
+    def kept(s) -> bool:
+        t = (s.t_us - T0_US) / 1e6
+        if not isinstance(s, ImuSample):
+            return True
+        if 20.0 < t < 20.5:                 # a 0.5 s gap: one long interval
+            return False
+        return not (40.0 <= t < 70.0) or (s.t_us - T0_US) % 200_000 == 0
+    mon, events = run([s for s in drive(100.0, seed=seed, yaw=0.3) if kept(s)], GROUND)
+    texts = [(round((e.t_us - T0_US) / 1e6), e.text) for e in of(events, Notice)]
+    slowed = [t for t, text in texts if "IMU now at 5.0 Hz, under 8 Hz: not integrated" in text]
+    back = [t for t, text in texts if "IMU now at 50.0 Hz: integrated" in text]
+    assert len(slowed) == 1 and 40 <= slowed[0] <= 42, texts
+    assert len(back) == 1 and 70 <= back[0] <= 71, texts
+    assert not any("under 8 Hz" in text for t, text in texts if t < 40), texts
+    assert 140 <= mon.skipped["imu_too_slow"] <= 155 and mon.inertial is True, mon.skipped
+    assert of(events, Alarm) == []

@@ -133,6 +133,39 @@ class StreamRate:
         return 1e6 / float(np.median(np.diff(self.times)))
 
 
+class RateWatch:
+    """Whether an IMU stream is fast enough to integrate (min_hz): judged from its first intervals,
+    then watched. A slow one is fast once the median of its last SAMPLES intervals reaches min_hz (the
+    autopilot was asked for more, guard.sources.rates); a fast one is slow once SAMPLES intervals in a
+    row are each longer than 1/min_hz (a ground station on the same port lowered it). One long
+    interval, a gap, is neither. While fast it costs a comparison a sample."""
+
+    def __init__(self, min_hz: float):
+        self.min_hz = min_hz
+        self.fast: bool | None = None
+        self._rate = StreamRate()
+        self._last: int | None = None
+        self._long = 0
+
+    def add(self, t_us: int) -> tuple[bool, float, bool] | None:
+        """(fast, its rate in Hz, first judgement) when the stream is judged or judged anew, else None."""
+        if self.fast:
+            last, self._last = self._last, t_us
+            if last is None or t_us - last <= 1e6 / self.min_hz:
+                self._long = 0
+                return None
+            self._long += 1
+            if self._long < StreamRate.SAMPLES:
+                return None
+            self.fast, self._long, self._rate = False, 0, StreamRate()
+            return False, 1e6 / (t_us - last), False
+        hz = self._rate.add(t_us)
+        if hz is None or (hz >= self.min_hz) == self.fast:
+            return None
+        first, self.fast, self._last = self.fast is None, hz >= self.min_hz, t_us
+        return self.fast, hz, first
+
+
 class Averager:
     """The mean of the IMU samples since the last fusion, due every 1/imu_fusion_hz (0: every sample)."""
 
