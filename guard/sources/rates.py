@@ -11,10 +11,12 @@ REQUEST_DATA_STREAM for its group too, which older firmware answers instead). Wh
 - GPS_RAW_INT at GNSS_HZ, when it comes slower than GNSS_SLOW_HZ (a receiver's own 5 Hz is left alone);
 - ATTITUDE at ATTITUDE_HZ, when slower than ATTITUDE_SLOW_HZ (it levels the IMU).
 
-It never asks for less than comes. It looks again RETRY_S later and asks again, TRIES times in all;
-an IMU still too slow to integrate (`monitor.min_imu_hz`) is then said once, with the setting that
-streams it. The
-request is asked again when the autopilot's HEARTBEAT returns after a silence (a reboot forgets it).
+It never asks for less than comes. It looks again RETRY_S later and asks again, TRIES times in all
+for a stream; one that has not come faster by then is not asked for again, and an IMU still too slow
+to integrate (`monitor.min_imu_hz`) is said once, with the setting that streams it. The streams are
+watched for as long as the link lasts, every RECHECK_S: one that slows later (a ground station or a
+router that set its own rates on the same port) is asked for again. Everything is asked again when
+the autopilot's HEARTBEAT returns after a silence (a reboot forgets what it was asked).
 The interval applies to the port the request arrives on (ArduPilot and PX4 alike): on a port shared
 with a telemetry radio it would raise the radio's load too; `link.request_rates = false` asks
 nothing. Autopilots other than ArduPilot and PX4 are not asked.
@@ -31,7 +33,8 @@ GNSS_HZ, GNSS_SLOW_HZ = 10.0, 3.0
 ATTITUDE_HZ, ATTITUDE_SLOW_HZ = 25.0, 10.0
 WATCH_S = 3.0       # how long the streams are measured before asking
 RETRY_S = 5.0       # how long after asking they are measured again
-TRIES = 3
+TRIES = 3           # asks for one stream, before it is left as it comes
+RECHECK_S = 10.0    # how often the streams are looked at when none is being asked for
 SILENCE_S = 5.0     # a HEARTBEAT after this long without one: the autopilot restarted, ask again
 DEFAULT_IMU = {mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA: "RAW_IMU", mavlink.MAV_AUTOPILOT_PX4: "HIGHRES_IMU"}
 GROUP = {"RAW_IMU": mavlink.MAV_DATA_STREAM_RAW_SENSORS, "GPS_RAW_INT": mavlink.MAV_DATA_STREAM_EXTENDED_STATUS,
@@ -51,8 +54,8 @@ class StreamRates:
         self.autopilot: tuple[int, int, int] | None = None     # (system, component, MAV_AUTOPILOT_)
         self.arrivals: dict[str, deque] = {}
         self._heartbeat = -1e9
-        self._next = None                     # when to look next (None: nothing more to do)
-        self._tries = 0
+        self._next: float | None = None      # when to look next (None: no autopilot heard yet)
+        self._tries: dict[str, int] = {}     # asks so far, per stream still slow
 
     def heard(self, msg, now: float) -> None:
         kind = msg.get_type()
@@ -60,7 +63,8 @@ class StreamRates:
             if msg.autopilot in DEFAULT_IMU:
                 if self.autopilot is None or now - self._heartbeat > SILENCE_S:
                     self.autopilot = (msg.get_srcSystem(), msg.get_srcComponent(), msg.autopilot)
-                    self._next, self._tries = now + WATCH_S, 0
+                    self._next = now + WATCH_S
+                    self._tries.clear()
                     self.arrivals.clear()
                 self._heartbeat = now
             return
@@ -88,19 +92,25 @@ class StreamRates:
     def due(self, now: float) -> list:
         if self._next is None or now < self._next:
             return []
-        slow = {k: hz for k, (hz, below) in self.wanted().items() if self.rate(k, now) < below}
-        if not slow or self._tries >= TRIES:
-            self._next = None
-            for imu in (k for k in slow if k in SETTING and self.rate(k, now) < self.enough_hz):
-                self.say(f"{imu} at {self.rate(imu, now):.1f} Hz though asked for {IMU_HZ:g} Hz: the autopilot did "
-                         f"not raise it ({SETTING[imu]})")
-            return []
-        self._tries += 1
-        self._next = now + RETRY_S
+        ask: dict[str, float] = {}
+        for kind, (hz, below) in self.wanted().items():
+            tries = self._tries.get(kind, 0)
+            if self.rate(kind, now) >= below:
+                self._tries.pop(kind, None)         # fast enough (again): asked afresh if it slows
+            elif tries < TRIES:
+                self._tries[kind] = tries + 1
+                ask[kind] = hz
+            elif tries == TRIES:                    # asked for in vain: left as it comes
+                self._tries[kind] = tries + 1
+                if kind in SETTING and self.rate(kind, now) < self.enough_hz:
+                    self.say(f"{kind} at {self.rate(kind, now):.1f} Hz though asked for {hz:g} Hz: the autopilot "
+                             f"did not raise it ({SETTING[kind]})")
+        self._next = now + (RETRY_S if ask else RECHECK_S)
         system, component, autopilot = self.autopilot
-        out = [_interval(system, component, kind, hz) for kind, hz in slow.items()]
-        if autopilot == mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA and self._tries > 1:     # older firmware
-            out += [_group(system, component, GROUP[k], hz) for k, hz in slow.items() if k in GROUP]
+        out = [_interval(system, component, kind, hz) for kind, hz in ask.items()]
+        if autopilot == mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA:      # older firmware answers only its groups
+            out += [_group(system, component, GROUP[k], hz) for k, hz in ask.items()
+                    if k in GROUP and self._tries[k] > 1]
         return out
 
 

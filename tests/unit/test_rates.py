@@ -171,3 +171,31 @@ def test_an_autopilot_of_another_kind_is_not_asked():
     r = rates.StreamRates(lambda text: None)
     stream(r, ap, 0.0, 10.0, {"gps": 1, "imu": 1})
     assert r.due(10.0) == []
+
+
+def test_a_stream_slowed_later_is_asked_for_again():
+    """A ground station on the same port sets RAW_IMU to 4 Hz a minute in: guard asks for 50 again."""
+    ap = Autopilot()
+    r = rates.StreamRates(lambda text: None)
+    asked, t = [], 0.0
+    while t < 100.0:
+        stream(r, ap, t, t + 0.5, {"gps": 5, "imu": 50 if t < 60.0 else 4, "attitude": 20})
+        t += 0.5
+        asked += [(t, a) for a in ap.asked(r.due(t))]
+    assert asked, "the slowed IMU was not asked for"
+    assert all(a == ("interval", "RAW_IMU", rates.IMU_HZ) or a[0] == "group" for _, a in asked), asked
+    first = asked[0][0]
+    assert 60.0 < first <= 60.0 + rates.WATCH_S + rates.RECHECK_S + 0.5, first
+
+
+def test_a_stream_that_never_comes_does_not_stop_the_others_being_watched():
+    """ATTITUDE never comes (asked TRIES times, then left); the IMU, slowed later, is still asked for."""
+    ap = Autopilot()
+    r = rates.StreamRates(lambda text: None)
+    asked, t = [], 0.0
+    while t < 120.0:
+        stream(r, ap, t, t + 0.5, {"gps": 5, "imu": 50 if t < 80.0 else 2})
+        t += 0.5
+        asked += [a for a in ap.asked(r.due(t)) if a[0] == "interval"]
+    assert [a[1] for a in asked].count("ATTITUDE") == rates.TRIES
+    assert ("interval", "RAW_IMU", rates.IMU_HZ) in asked
