@@ -158,7 +158,7 @@ class MavlinkLink:
         self.unix_fixes = UnixFixes(log.warning)    # fixes stamped in UNIX time, on the boot clock
         self.imu_stream = ImuStream(log.warning)    # RAW_IMU (ArduPilot) or HIGHRES_IMU (PX4), not both
         # the streams guard reads, asked of the autopilot at rates it can use (guard.sources.rates)
-        self.rates = StreamRates(log.warning, lambda: self.imu_stream.kind, min_imu_hz) \
+        self.rates = StreamRates(log.warning, lambda: self.imu_stream.kind, min_imu_hz, log.info) \
             if cfg.request_rates else None
         refuse_taken_port(url)
         try:

@@ -45,10 +45,12 @@ SETTING = {"RAW_IMU": "ArduPilot: SRn_RAW_SENS", "HIGHRES_IMU": "PX4: the port's
 class StreamRates:
     """Measures the streams of the autopilot heard and says what to ask for. `heard(msg, now)` for
     every message of the system read; `due(now)` returns the requests to send now, as functions of a
-    pymavlink MAVLink object. `say` is how a stream that did not come is said."""
+    pymavlink MAVLink object. `say` is how a stream that did not come is said, `tell` how a first ask
+    is (what guard changes on the autopilot's port is not done in silence)."""
 
-    def __init__(self, say, imu_kind=lambda: None, enough_hz: float = 8.0):
+    def __init__(self, say, imu_kind=lambda: None, enough_hz: float = 8.0, tell=lambda text: None):
         self.say = say
+        self.tell = tell
         self.enough_hz = enough_hz            # an IMU this fast is integrated: slower, it is said
         self.imu_kind = imu_kind              # the IMU message the vehicle sends, once one came
         self.autopilot: tuple[int, int, int] | None = None     # (system, component, MAV_AUTOPILOT_)
@@ -107,6 +109,10 @@ class StreamRates:
                              f"did not raise it ({SETTING[kind]})")
         self._next = now + (RETRY_S if ask else RECHECK_S)
         system, component, autopilot = self.autopilot
+        if first := [k for k in ask if self._tries[k] == 1]:
+            self.tell(f"asked the autopilot (system {system}) for " + ", ".join(
+                f"{k} at {ask[k]:g} Hz (it came at {self.rate(k, now):.1f})" for k in first)
+                + "; link.request_rates = false asks nothing")
         out = [_interval(system, component, kind, hz) for kind, hz in ask.items()]
         if autopilot == mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA:      # older firmware answers only its groups
             out += [_group(system, component, GROUP[k], hz) for k, hz in ask.items()

@@ -298,6 +298,7 @@ def test_an_autopilot_streaming_at_1_hz_is_asked_for_more(procs, tmp_path, autop
     assert f"[autopilot] {imu} at 50 Hz, as asked" in sim_out, sim_out
     assert "[autopilot] GPS_RAW_INT at 10 Hz, as asked" in sim_out, sim_out
     assert any("IMU now at 10.0 Hz: integrated" in line for line in daemon_out), daemon_out
+    assert any(f"asked the autopilot (system 1) for {imu} at 50 Hz" in line for line in daemon_out), daemon_out
     alarm = next(line for line in daemon_out if "GUARD ALARM" in line)
     assert "gnss_pos north" in alarm and re.search(r"t=40\.\d\d s", alarm), alarm
 

@@ -72,8 +72,8 @@ def stream(r: rates.StreamRates, ap: Autopilot, t0: float, t1: float, hz: dict, 
 
 
 def test_slow_streams_are_asked_for_after_watching_them():
-    ap, said = Autopilot(), []
-    r = rates.StreamRates(said.append)
+    ap, said, told = Autopilot(), [], []
+    r = rates.StreamRates(said.append, tell=told.append)
     stream(r, ap, 0.0, rates.WATCH_S - 0.5, {"gps": 1, "imu": 2, "attitude": 4})
     assert r.due(rates.WATCH_S - 0.5) == [], "asked before watching for WATCH_S"
     stream(r, ap, rates.WATCH_S - 0.5, rates.WATCH_S + 0.1, {"gps": 1, "imu": 2, "attitude": 4})
@@ -81,6 +81,8 @@ def test_slow_streams_are_asked_for_after_watching_them():
         ("interval", "ATTITUDE", rates.ATTITUDE_HZ), ("interval", "GPS_RAW_INT", rates.GNSS_HZ),
         ("interval", "RAW_IMU", rates.IMU_HZ)]
     assert said == []
+    # what guard changes on the autopilot's port is said, with what came before
+    assert len(told) == 1 and "RAW_IMU at 50 Hz (it came at 2.0)" in told[0] and "GPS_RAW_INT at 10 Hz" in told[0]
 
 
 def test_streams_fast_enough_are_never_asked_for_less():
