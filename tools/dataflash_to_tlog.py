@@ -1,9 +1,13 @@
 """An ArduPilot DataFlash log written as the tlog a ground station would have recorded of the same
 flight: each IMU, GPS and attitude sample at its own rate, as MAVLink RAW_IMU (carrying the latest
 compass reading, as an autopilot streams it), GPS_RAW_INT and ATTITUDE, with a HEARTBEAT a second.
+With --px4 (and a PX4 ULog too), as PX4's onboard link sends it instead: the IMU as HIGHRES_IMU at
+50 Hz, its latest sample each 20 ms (PX4's stream sends the latest integrated IMU sample, it does
+not average), the magnetometer marked new (fields_updated) when a reading came since the last.
 
     python tools/dataflash_to_tlog.py FLIGHT.bin OUT.tlog
     python tools/dataflash_to_tlog.py FOLDER OUT_FOLDER        # every .bin in FOLDER
+    python tools/dataflash_to_tlog.py --px4 FOLDER OUT_FOLDER  # every .bin and .ulg, as PX4 sends it
 
 The time stamps are the autopilot's, as logged: a DataFlash log whose clock parts from the GNSS time
 is put right by guard's DataFlash reader, which a tlog, whose GPS_RAW_INT carries no GNSS time,
@@ -28,10 +32,13 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink     # noqa: E402
 from guard.errors import GuardError                  # noqa: E402
 from guard.model.samples import Attitude, GnssFix, ImuSample    # noqa: E402
 from guard.sources.dataflash import DataFlashReader  # noqa: E402
+from guard.sources.ulog import UlogReader            # noqa: E402
 
 G = 9.80665
 UNKNOWN_U16 = 65535
 NO_UTC_US = 1_600_000_000_000_000       # the prefix's origin for a log that does not say its UTC
+PX4_IMU_US = 20_000                     # PX4's onboard link: HIGHRES_IMU at 50 Hz
+ACC_GYRO, MAG_NEW = 0b111111, 0b111 << 6   # HIGHRES_IMU fields_updated
 
 
 class Frames:
@@ -48,13 +55,17 @@ def i16(v: float) -> int:
     return max(-32767, min(32767, round(v)))
 
 
-def convert(src: str, dst: str) -> int:
-    """Write `src` as a tlog at `dst`; the number of frames written."""
-    reader = DataFlashReader(src, as_logged=True)
+def convert(src: str, dst: str, px4: bool = False) -> int:
+    """Write `src` as a tlog at `dst` (as PX4's onboard link sends it, with px4); the frames written."""
+    ulog = src.lower().endswith(".ulg")
+    reader = UlogReader(src) if ulog else DataFlashReader(src, as_logged=True)
     frames = Frames()
     mav = mavlink.MAVLink(frames, srcSystem=1, srcComponent=1)
-    kind = mavlink.MAV_TYPE_GROUND_ROVER if reader.ground else mavlink.MAV_TYPE_QUADROTOR
+    ground = getattr(reader, "ground", False)
+    kind = mavlink.MAV_TYPE_GROUND_ROVER if ground else mavlink.MAV_TYPE_QUADROTOR
+    autopilot = mavlink.MAV_AUTOPILOT_PX4 if px4 else mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
     mag, last_heartbeat, n = (0, 0, 0), None, 0
+    last_imu, mag_si, mag_new = None, (0.0, 0.0, 0.0), False
     try:
         with open(dst, "wb") as out:
             def emit(t_us: int, msg) -> None:
@@ -70,9 +81,19 @@ def convert(src: str, dst: str) -> int:
                 if t is None:
                     continue
                 if last_heartbeat is None or t - last_heartbeat >= 1_000_000:
-                    emit(t, mavlink.MAVLink_heartbeat_message(kind, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0, 3))
+                    emit(t, mavlink.MAVLink_heartbeat_message(kind, autopilot, 0, 0, 0, 3))
                     last_heartbeat = t
-                if isinstance(s, ImuSample):
+                if isinstance(s, ImuSample) and px4:
+                    if s.mag_x_gauss is not None:
+                        mag_si, mag_new = (s.mag_x_gauss, s.mag_y_gauss, s.mag_z_gauss), True
+                    if last_imu is not None and 0 <= t - last_imu < PX4_IMU_US - 2_500:   # half a 200 Hz sample
+                        continue
+                    last_imu = t
+                    emit(t, mavlink.MAVLink_highres_imu_message(
+                        t, s.acc_x_mps2, s.acc_y_mps2, s.acc_z_mps2, s.gyro_x_radps, s.gyro_y_radps, s.gyro_z_radps,
+                        *mag_si, 0.0, 0.0, 0.0, 0.0, ACC_GYRO | (MAG_NEW if mag_new else 0)))
+                    mag_new = False
+                elif isinstance(s, ImuSample):
                     if s.mag_x_gauss is not None:
                         mag = (i16(s.mag_x_gauss * 1000), i16(s.mag_y_gauss * 1000), i16(s.mag_z_gauss * 1000))
                     emit(t, mavlink.MAVLink_raw_imu_message(
@@ -96,13 +117,15 @@ def convert(src: str, dst: str) -> int:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("src", help="a DataFlash log, or a folder of them")
+    ap.add_argument("src", help="a DataFlash log (or with --px4 a ULog), or a folder of them")
     ap.add_argument("dst", help="the tlog to write, or a folder for them")
+    ap.add_argument("--px4", action="store_true", help="as PX4's onboard link sends it: HIGHRES_IMU at 50 Hz")
     args = ap.parse_args(argv)
     src, dst = Path(args.src), Path(args.dst)
+    kinds = {".bin", ".ulg"} if args.px4 else {".bin"}
     if src.is_dir():
         dst.mkdir(parents=True, exist_ok=True)
-        jobs = [(p, dst / (p.stem + ".tlog")) for p in sorted(src.iterdir()) if p.suffix.lower() == ".bin"]
+        jobs = [(p, dst / (p.stem + ".tlog")) for p in sorted(src.iterdir()) if p.suffix.lower() in kinds]
     elif src.exists():
         jobs = [(src, dst)]
     else:
@@ -110,7 +133,7 @@ def main(argv=None) -> int:
         return 2
     for a, b in jobs:
         try:
-            n = convert(str(a), str(b))
+            n = convert(str(a), str(b), args.px4)
         except (GuardError, OSError) as e:
             print(f"guard: {a}: {e}", file=sys.stderr)
             return 1
