@@ -5,7 +5,7 @@ vel_acc mm/s; fix_type < 3 is no 3D fix. RAW_IMU (ArduPilot): acceleration mG (s
 gyro mrad/s, magnetometer mGauss, body FRD. HIGHRES_IMU (PX4's, 50 Hz in its onboard mode): the same in
 SI floats (m/s^2, rad/s, gauss), with EKF2's estimated sensor biases already taken out; its
 fields_updated bits say which groups are new (a magnetometer without its bits is the last reading
-again, and is not used); a non-finite value is skipped. ATTITUDE: roll, pitch rad; time_boot_ms; a roll outside
+again, and is not used); a non-finite value, or one beyond what RAW_IMU's int16 carries, is skipped. ATTITUDE: roll, pitch rad; time_boot_ms; a roll outside
 [-pi, pi] or a pitch beyond 1.5 rad (or either not finite) is skipped.
 HEARTBEAT of an autopilot (autopilot != INVALID): its type; a GROUND_ROVER is a ground vehicle.
 
@@ -33,6 +33,8 @@ WANTED = {mavlink.MAVLINK_MSG_ID_GPS_RAW_INT, mavlink.MAVLINK_MSG_ID_RAW_IMU, ma
 IMU_MESSAGES = ("RAW_IMU", "HIGHRES_IMU")
 HIGHRES_ACC_GYRO = 0b111111         # fields_updated: bits 0-2 the accelerometer, 3-5 the gyro ...
 HIGHRES_MAG = 0b111 << 6            # ... 6-8 the magnetometer
+# HIGHRES_IMU's floats bounded by what RAW_IMU's int16 carries: 32.767 g, rad/s and gauss; beyond, corrupt
+ACC_MAX_MPS2, GYRO_MAX_RADPS, MAG_MAX_GAUSS = 32.767 * 9.80665, 32.767, 32.767
 
 
 T_MAX_US = 4_102_444_800_000_000     # 2100-01-01 in unix microseconds: no boot or unix time goes past it
@@ -86,12 +88,14 @@ def _highres_imu(msg) -> tuple[ImuSample | None, str | None]:
     acc_gyro = (msg.xacc, msg.yacc, msg.zacc, msg.xgyro, msg.ygyro, msg.zgyro)
     if not all(math.isfinite(v) for v in acc_gyro):
         return None, "imu_invalid"
+    if max(map(abs, acc_gyro[:3])) > ACC_MAX_MPS2 or max(map(abs, acc_gyro[3:])) > GYRO_MAX_RADPS:
+        return None, "imu_out_of_range"
     updated = msg.fields_updated
     if updated and updated & HIGHRES_ACC_GYRO != HIGHRES_ACC_GYRO:
         return None, "imu_not_new"
     mag = (msg.xmag, msg.ymag, msg.zmag)
     fresh = updated & HIGHRES_MAG == HIGHRES_MAG if updated else mag != (0.0, 0.0, 0.0)
-    if not (fresh and all(math.isfinite(m) for m in mag)):
+    if not (fresh and all(math.isfinite(m) and abs(m) <= MAG_MAX_GAUSS for m in mag)):
         mag = (None, None, None)
     return ImuSample(int(msg.time_usec), *acc_gyro, *mag), None
 

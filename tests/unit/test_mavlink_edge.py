@@ -195,6 +195,14 @@ def test_highres_imu_non_finite_is_skipped(acc, gyro):
     assert to_sample(highres_imu(acc=acc, gyro=gyro)) == (None, "imu_invalid")
 
 
+@pytest.mark.parametrize("acc, gyro", [((1e30, 0.0, -G), (0.0, 0.0, 0.0)), ((0.0, 0.0, -G), (0.0, 0.0, -40.0))])
+def test_highres_imu_beyond_any_sensors_range_is_skipped(acc, gyro):
+    """One corrupt or hostile float would make the filter diverge: beyond RAW_IMU's own range, skipped."""
+    assert to_sample(highres_imu(acc=acc, gyro=gyro)) == (None, "imu_out_of_range")
+    sample, reason = to_sample(highres_imu(mag=(0.2, 1e9, 0.4)))
+    assert reason is None and sample.mag_x_gauss is None
+
+
 def test_highres_imu_non_finite_magnetometer_is_no_reading():
     sample, reason = to_sample(highres_imu(mag=(math.nan, 0.1, 0.4)))
     assert reason is None and sample.mag_x_gauss is None and sample.acc_z_mps2 == pytest.approx(-G, rel=1e-6)
