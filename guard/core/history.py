@@ -104,14 +104,18 @@ class History:
         for _, x in self.states:
             x += dx
 
-    def anchored(self) -> None:
+    def anchored(self, fix_t_us: int, x_fix: np.ndarray) -> None:
         """The estimate was set to a fix (a re-anchoring): a rewind goes no further back than it, and a
         late fix is compared with the states from it on. The states before it are the estimate that
         could not be held: moved by the anchor's correction they would keep its runaway velocity, and
-        the next late fix would meet it and alarm again at once."""
+        the next late fix would meet it and alarm again at once. With a latency, the anchor itself is
+        stored at the time the fix shows (x_fix: the state there), so that the fix and those after
+        it are compared with where the anchor puts the vehicle at their own times."""
         self.epochs.clear()
         self.imu_log.clear()
         self.states.clear()
+        if self.delay_s > 0:
+            self.states.append((fix_t_us - int(self.delay_s * 1e6), x_fix.copy()))
 
     def rewind(self, ekf: NavEKF, epochs: int, now_us: int) -> None:
         """Undo the last `epochs` GNSS epochs: back to the filter before the attack's first sample was

@@ -150,7 +150,9 @@ class Judge:
         if sigma <= max_coast_m:
             return []
         anchor(ekf, fix, en, gnss_aid.sigma_pos(fix), gnss_aid.sigma_vel(fix), self.history.delay_s)
-        self.history.anchored()
+        at_fix = ekf.x.copy()                       # the anchor where the fix shows the vehicle
+        at_fix[X], at_fix[Y] = en
+        self.history.anchored(fix.t_us, at_fix)
         # said as a warning once per alarm: for a standing alarm going on (each sensor excluded by an alarm
         # of its own is), it is the same news
         own = [s for s in RECEIVER if s in self.health.excluded and s not in self.health.with_receiver]
