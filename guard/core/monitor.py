@@ -395,6 +395,8 @@ class Monitor:
         verdict = self.compass.check(t_us, heard, self.ground, self.inertial)
         if verdict is None:
             return []
+        if verdict in ("back", "ground") and self.imu_rate.fast is False:
+            return []                       # a compass now, but an IMU still too slow to integrate
         if verdict == "back":
             self.inertial = True
             return self._reinitialise(t_us, "a magnetometer reading, after none: the IMU is integrated again")
@@ -414,8 +416,8 @@ class Monitor:
         """An IMU stream slower than min_imu_hz (telemetry sends RAW_IMU at 1 to 4 Hz) cannot be
         integrated: GNSS position and velocity are then tested against each other alone, the heading
         held (said). One that comes faster later (guard asked the autopilot for more,
-        guard.sources.rates) is integrated from then on: a new filter, which keeps what the old one
-        learnt of the vehicle. One that slows later is no longer integrated (RateWatch)."""
+        guard.sources.rates) is integrated from then on, by a new filter. One that slows later is no
+        longer integrated (RateWatch)."""
         judged = self.imu_rate.add(t_us)
         if judged is None:
             return []

@@ -72,6 +72,9 @@ def replay(path: str, cfg: Config | None = None, *, listeners=(), progress: bool
         raise SourceError(f"{path}: no GNSS sample could be read: {nothing_read(out)}")
     if out["samples"]["gnss"] == out["skipped"].get("gnss_no_fix", 0):     # a bench test, a flight indoors
         raise SourceError(f"{path}: no GNSS message with a 3D fix, nothing to monitor: {nothing_read(out)}")
+    if out["samples"]["gnss"] == sum(out["skipped"].get(k, 0) for k in ("gnss_no_fix", "gnss_coarse_before_start")):
+        raise SourceError(f"{path}: no GNSS fix good enough to start on (5 m, or HDOP 5), nothing monitored: "
+                          f"{nothing_read(out)}")
     return out
 
 

@@ -120,6 +120,22 @@ def test_a_log_whose_receiver_never_had_a_fix_is_an_error_not_a_clean_report(tmp
     assert path in str(e.value) and "101 gnss_no_fix" in str(e.value), str(e.value)
 
 
+def test_a_log_whose_fixes_were_never_good_enough_to_start_on_is_an_error(tmp_path):
+    """3D fixes throughout, but the receiver never better than 25 m (HDOP 9): monitoring never
+    started, and the replay says so instead of reporting no alarm."""
+    sim, out = Simulation(dataclasses.replace(scn.load("paper"), duration_s=10.0), 1), b""
+    enc = sim.encoder
+    for t_us, messages in sim.ticks():
+        for msg in messages:
+            if msg.get_type() == "GPS_RAW_INT":
+                msg.h_acc, msg.eph = 25_000, 900
+            out += struct.pack(">Q", TLOG_EPOCH_US + t_us) + enc.pack(msg)
+    path = write(tmp_path, "coarse.tlog", out)
+    with pytest.raises(SourceError, match="no GNSS fix good enough to start on") as e:
+        replay(path)
+    assert path in str(e.value) and "gnss_coarse_before_start" in str(e.value), str(e.value)
+
+
 def test_random_bytes(tmp_path):
     data = np.random.default_rng(42).integers(0, 256, 20_000, dtype=np.uint8).tobytes()
     assert "garbage_bytes" in nothing_found(write(tmp_path, "random.tlog", data))

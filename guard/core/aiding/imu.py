@@ -136,9 +136,12 @@ class StreamRate:
 class RateWatch:
     """Whether an IMU stream is fast enough to integrate (min_hz): judged from its first intervals,
     then watched. A slow one is fast once the median of its last SAMPLES intervals reaches min_hz (the
-    autopilot was asked for more, guard.sources.rates); a fast one is slow once SAMPLES intervals in a
-    row are each longer than 1/min_hz (a ground station on the same port lowered it). One long
-    interval, a gap, is neither. While fast it costs a comparison a sample."""
+    autopilot was asked for more, guard.sources.rates); a fast one is slow once SLOW_RUN intervals in
+    a row are each longer than 1/min_hz (a ground station on the same port lowered it): a lossy link
+    that drops a sample now and then, or a gap, is neither, and does not make the judgement flap.
+    While fast it costs a comparison a sample."""
+
+    SLOW_RUN = 20
 
     def __init__(self, min_hz: float):
         self.min_hz = min_hz
@@ -155,7 +158,7 @@ class RateWatch:
                 self._long = 0
                 return None
             self._long += 1
-            if self._long < StreamRate.SAMPLES:
+            if self._long < self.SLOW_RUN:
                 return None
             self.fast, self._long, self._rate = False, 0, StreamRate()
             return False, 1e6 / (t_us - last), False
