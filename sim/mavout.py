@@ -137,14 +137,19 @@ class LiveLink:
         return True
 
     def _command(self, msg) -> None:
-        """A SET_MESSAGE_INTERVAL for this system: honoured and acknowledged."""
-        if msg.command != mavlink.MAV_CMD_SET_MESSAGE_INTERVAL or msg.target_system != SYSTEM_ID:
+        """A SET_MESSAGE_INTERVAL for this autopilot (system and component): honoured and acknowledged
+        for a message it sends, denied for any other or for parameters that are no message id and
+        interval."""
+        if msg.command != mavlink.MAV_CMD_SET_MESSAGE_INTERVAL or (msg.target_system, msg.target_component) != (
+                SYSTEM_ID, COMPONENT_ID):
             return
-        entry = mavlink.mavlink_map.get(int(msg.param1))
+        ok = all(math.isfinite(p) and abs(p) < 2 ** 31 for p in (msg.param1, msg.param2))
+        entry = mavlink.mavlink_map.get(int(msg.param1)) if ok else None
+        imu = "HIGHRES_IMU" if self.encoder.autopilot == "px4" else "RAW_IMU"
         result = mavlink.MAV_RESULT_DENIED
-        if entry is not None:
+        if entry is not None and entry.msgname in ("GPS_RAW_INT", imu, "HEARTBEAT"):
             name = "RAW_IMU" if entry.msgname == "HIGHRES_IMU" else entry.msgname
-            interval = int(msg.param2)
+            interval = round(msg.param2)
             if interval == 0:
                 self.interval_us.pop(name, None)
                 if name in self.default_us:

@@ -30,15 +30,15 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import ardupilotmega as mavlink     # noqa: E402
 
 from guard.errors import GuardError                  # noqa: E402
-from guard.model.samples import Attitude, GnssFix, ImuSample    # noqa: E402
+from guard.model.samples import Attitude, GnssFix, ImuSample, VehicleType    # noqa: E402
 from guard.sources.dataflash import DataFlashReader  # noqa: E402
+from guard.sources.mavlink import HIGHRES_ACC_GYRO, HIGHRES_MAG     # noqa: E402
 from guard.sources.ulog import UlogReader            # noqa: E402
 
 G = 9.80665
 UNKNOWN_U16 = 65535
 NO_UTC_US = 1_600_000_000_000_000       # the prefix's origin for a log that does not say its UTC
 PX4_IMU_US = 20_000                     # PX4's onboard link: HIGHRES_IMU at 50 Hz
-ACC_GYRO, MAG_NEW = 0b111111, 0b111 << 6   # HIGHRES_IMU fields_updated
 
 
 class Frames:
@@ -77,6 +77,8 @@ def convert(src: str, dst: str, px4: bool = False) -> int:
                 n += 1
 
             for s in reader.samples():
+                if isinstance(s, VehicleType):      # the log's vehicle, before its first sample (a ULog's too)
+                    kind = mavlink.MAV_TYPE_GROUND_ROVER if s.ground else mavlink.MAV_TYPE_QUADROTOR
                 t = getattr(s, "t_us", None)
                 if t is None:
                     continue
@@ -91,7 +93,7 @@ def convert(src: str, dst: str, px4: bool = False) -> int:
                     last_imu = t
                     emit(t, mavlink.MAVLink_highres_imu_message(
                         t, s.acc_x_mps2, s.acc_y_mps2, s.acc_z_mps2, s.gyro_x_radps, s.gyro_y_radps, s.gyro_z_radps,
-                        *mag_si, 0.0, 0.0, 0.0, 0.0, ACC_GYRO | (MAG_NEW if mag_new else 0)))
+                        *mag_si, 0.0, 0.0, 0.0, 0.0, HIGHRES_ACC_GYRO | (HIGHRES_MAG if mag_new else 0)))
                     mag_new = False
                 elif isinstance(s, ImuSample):
                     if s.mag_x_gauss is not None:

@@ -483,3 +483,37 @@ def test_valid_but_incommensurate_rates_do_not_spin():
         assert messages, f"tick {n} carries no message"
         if n > 500:
             break
+
+
+def test_the_live_link_honours_an_interval_asked_of_it_and_nothing_malformed():
+    """SET_MESSAGE_INTERVAL to the simulator's autopilot: a message it sends is honoured and
+    acknowledged; NaN or infinite parameters, a message it does not send, another component: denied or
+    ignored, never an exception."""
+    import math as m
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink
+    from guard_sim.mavout import COMPONENT_ID, SYSTEM_ID, Encoder, LiveLink
+    listener = mavutil.mavlink_connection("udpin:127.0.0.1:0")
+    port = listener.port.getsockname()[1]
+    honoured: list = []
+    link = LiveLink(f"udpout:127.0.0.1:{port}", Encoder(), stream_hz=1.0, on_request=lambda n, i: honoured.append((n, i)))
+    asker = mavlink.MAVLink(None, srcSystem=1, srcComponent=191)
+
+    def command(p1, p2, component=COMPONENT_ID):
+        msg = mavlink.MAVLink(None).decode(bytearray(asker.command_long_encode(
+            SYSTEM_ID, component, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0, p1, p2, 0, 0, 0, 0, 0).pack(asker)))
+        link._command(msg)
+    try:
+        command(mavlink.MAVLINK_MSG_ID_RAW_IMU, 20_000)
+        command(m.nan, 20_000)
+        command(mavlink.MAVLINK_MSG_ID_RAW_IMU, m.inf)
+        command(mavlink.MAVLINK_MSG_ID_ATTITUDE, 40_000)       # not sent by the simulator
+        command(mavlink.MAVLINK_MSG_ID_GPS_RAW_INT, 100_000, component=154)
+        assert honoured == [("RAW_IMU", 20_000)]
+        assert link.interval_us["RAW_IMU"] == 20_000 and link.interval_us["GPS_RAW_INT"] == 1e6
+        acks = []
+        while (a := listener.recv_match(type="COMMAND_ACK", blocking=True, timeout=1.0)) is not None:
+            acks.append(a.result)
+        assert acks == [mavlink.MAV_RESULT_ACCEPTED] + [mavlink.MAV_RESULT_DENIED] * 3, acks
+    finally:
+        link.close()
+        listener.close()
