@@ -80,14 +80,11 @@ def anchor(ekf: NavEKF, fix: GnssFix, en: tuple[float, float], sigma_pos: float,
            late_s: float = 0.0) -> None:
     """The estimate's position (and velocity, where the fix has one) set to the fix's, uncorrelated,
     with the fix's own noise as their uncertainty. A fix from a receiver late_s late (gnss_delay_s)
-    shows where the vehicle was then: its position is carried to now by its velocity (or the
-    estimate's, where it has none), else the next late fix finds the estimate that far behind."""
+    shows where the vehicle was then: its position is carried to now by its velocity, else the next
+    late fix finds the estimate that far behind (a fix without a velocity is taken as it is: the
+    estimate's own velocity is what could not be held)."""
     x, P = ekf.x, ekf.P
-    if fix.vel_n_mps is not None:
-        ve, vn = fix.vel_e_mps, fix.vel_n_mps
-    else:
-        c, s = math.cos(x[TH]), math.sin(x[TH])
-        ve, vn = c * x[VX] - s * x[VY], s * x[VX] + c * x[VY]
+    ve, vn = (fix.vel_e_mps, fix.vel_n_mps) if fix.vel_n_mps is not None else (0.0, 0.0)
     x[X], x[Y] = en[0] + ve * late_s, en[1] + vn * late_s
     anchored = [X, Y]
     if fix.vel_n_mps is not None:
