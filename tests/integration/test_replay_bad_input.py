@@ -104,17 +104,22 @@ def nothing_found(path: str) -> str:
     return str(e.value)
 
 
-def test_a_log_whose_receiver_never_had_a_fix_is_an_error_not_a_clean_report(tmp_path):
-    """A bench test or a flight indoors: GPS_RAW_INT throughout, never a 3D fix. Nothing was
-    monitored, and the replay says so instead of reporting no alarm."""
+def ten_seconds_with_fixes(tmp_path, name: str, fix) -> str:
+    """The paper's first 10 s as a tlog, each GPS_RAW_INT made by fix(encoder, t_us, msg)."""
     sim, out = Simulation(dataclasses.replace(scn.load("paper"), duration_s=10.0), 1), b""
-    enc = sim.encoder
     for t_us, messages in sim.ticks():
         for msg in messages:
             if msg.get_type() == "GPS_RAW_INT":
-                msg = enc.gps_raw_int(t_us, 0.0, 0.0, 0.0, 0.0, 0.0, 99.0, 9.9, fix_type=1)
-            out += struct.pack(">Q", TLOG_EPOCH_US + t_us) + enc.pack(msg)
-    path = write(tmp_path, "bench.tlog", out)
+                msg = fix(sim.encoder, t_us, msg)
+            out += struct.pack(">Q", TLOG_EPOCH_US + t_us) + sim.encoder.pack(msg)
+    return write(tmp_path, name, out)
+
+
+def test_a_log_whose_receiver_never_had_a_fix_is_an_error_not_a_clean_report(tmp_path):
+    """A bench test or a flight indoors: GPS_RAW_INT throughout, never a 3D fix. Nothing was
+    monitored, and the replay says so instead of reporting no alarm."""
+    path = ten_seconds_with_fixes(tmp_path, "bench.tlog", lambda enc, t_us, msg: enc.gps_raw_int(
+        t_us, 0.0, 0.0, 0.0, 0.0, 0.0, 99.0, 9.9, fix_type=1))
     with pytest.raises(SourceError, match="no GNSS message with a 3D fix, nothing to monitor") as e:
         replay(path)
     assert path in str(e.value) and "101 gnss_no_fix" in str(e.value), str(e.value)
@@ -123,14 +128,10 @@ def test_a_log_whose_receiver_never_had_a_fix_is_an_error_not_a_clean_report(tmp
 def test_a_log_whose_fixes_were_never_good_enough_to_start_on_is_an_error(tmp_path):
     """3D fixes throughout, but the receiver never better than 25 m (HDOP 9): monitoring never
     started, and the replay says so instead of reporting no alarm."""
-    sim, out = Simulation(dataclasses.replace(scn.load("paper"), duration_s=10.0), 1), b""
-    enc = sim.encoder
-    for t_us, messages in sim.ticks():
-        for msg in messages:
-            if msg.get_type() == "GPS_RAW_INT":
-                msg.h_acc, msg.eph = 25_000, 900
-            out += struct.pack(">Q", TLOG_EPOCH_US + t_us) + enc.pack(msg)
-    path = write(tmp_path, "coarse.tlog", out)
+    def coarse(enc, t_us, msg):
+        msg.h_acc, msg.eph = 25_000, 900
+        return msg
+    path = ten_seconds_with_fixes(tmp_path, "coarse.tlog", coarse)
     with pytest.raises(SourceError, match="no GNSS fix good enough to start on") as e:
         replay(path)
     assert path in str(e.value) and "gnss_coarse_before_start" in str(e.value), str(e.value)
