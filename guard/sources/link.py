@@ -147,7 +147,9 @@ def refuse_taken_port(url: str) -> None:
 
 
 class MavlinkLink:
-    def __init__(self, url: str, cfg, min_imu_hz: float = 8.0):
+    def __init__(self, url: str, cfg, min_imu_hz: float | None = None):
+        """`min_imu_hz` (the monitor's): the link guard reads its data from, whose streams it asks the
+        autopilot for (link.request_rates); None: a link guard only sends on, which asks for nothing."""
         self.cfg = cfg
         self.system_id = cfg.system_id
         self.skipped: Counter[str] = Counter()
@@ -158,8 +160,8 @@ class MavlinkLink:
         self.unix_fixes = UnixFixes(log.warning)    # fixes stamped in UNIX time, on the boot clock
         self.imu_stream = ImuStream(log.warning)    # RAW_IMU (ArduPilot) or HIGHRES_IMU (PX4), not both
         # the streams guard reads, asked of the autopilot at rates it can use (guard.sources.rates)
-        self.rates = StreamRates(log.warning, lambda: self.imu_stream.kind, min_imu_hz, log.info) \
-            if cfg.request_rates else None
+        self.rates = StreamRates(log.warning, min_imu_hz, lambda: self.imu_stream.kind, log.info) \
+            if cfg.request_rates and min_imu_hz is not None else None
         refuse_taken_port(url)
         try:
             self.conn = mavutil.mavlink_connection(url, source_system=cfg.system_id or 1,

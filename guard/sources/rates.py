@@ -53,7 +53,7 @@ class StreamRates:
     pymavlink MAVLink object. `say` is how a stream that did not come is said, `tell` how a first ask
     is (what guard changes on the autopilot's port is not done in silence)."""
 
-    def __init__(self, say, imu_kind=lambda: None, enough_hz: float = 8.0, tell=lambda text: None):
+    def __init__(self, say, enough_hz: float, imu_kind=lambda: None, tell=lambda text: None):
         self.say = say
         self.tell = tell
         self.enough_hz = enough_hz            # an IMU this fast is integrated: slower, it is said

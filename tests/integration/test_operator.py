@@ -172,6 +172,23 @@ def test_a_udp_port_already_taken_is_refused():
     MavlinkLink(f"udpin:127.0.0.1:{port}", LinkConfig()).close()      # a free port opens
 
 
+def test_only_the_link_guard_reads_from_asks_the_autopilot_for_streams():
+    """The ground station's link (link.gcs), or the MAVLink link that only carries a CAN source's
+    alarms, may hear the autopilot's HEARTBEAT through a router: guard reads no stream there, so it
+    asks for none (the autopilot would send them for nothing)."""
+    from guard.config import LinkConfig
+    from guard.core.monitor import MonitorConfig
+    from guard.sources.link import MavlinkLink
+    data = MavlinkLink("udpin:127.0.0.1:0", LinkConfig(), MonitorConfig().min_imu_hz)
+    send_only = MavlinkLink("udpin:127.0.0.1:0", LinkConfig())
+    try:
+        assert data.rates is not None and data.rates.enough_hz == MonitorConfig().min_imu_hz
+        assert send_only.rates is None
+    finally:
+        data.close()
+        send_only.close()
+
+
 def test_a_replay_says_how_far_the_estimate_stood_from_the_fixes_and_what_it_skipped(shared, tmp_path, capsys):
     """The summary a replay prints: the estimate's distance from the fixes (a clean flight: within a
     few metres), and a line in words for each reason something was skipped; the report has both."""

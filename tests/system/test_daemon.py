@@ -208,6 +208,8 @@ class Proc:
                 self.p.wait()
         for t in self._threads:
             t.join(5)
+        for stream in (self.p.stdout, self.p.stderr):   # read to the end by now: closed, not left to the collector
+            stream.close()
         return rc
 
     def kill(self) -> None:

@@ -8,7 +8,10 @@ import guard.sources.mavlink  # noqa: F401  (sets MAVLINK20=1 before pymavlink i
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from guard.core.monitor import MonitorConfig
 from guard.sources import rates
+
+MIN_IMU_HZ = MonitorConfig().min_imu_hz      # the daemon passes the monitor's
 
 AP, PX4 = mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, mavlink.MAV_AUTOPILOT_PX4
 
@@ -74,7 +77,7 @@ def stream(r: rates.StreamRates, ap: Autopilot, t0: float, t1: float, hz: dict, 
 
 def test_slow_streams_are_asked_for_after_watching_them():
     ap, said, told = Autopilot(), [], []
-    r = rates.StreamRates(said.append, tell=told.append)
+    r = rates.StreamRates(said.append, MIN_IMU_HZ, tell=told.append)
     stream(r, ap, 0.0, rates.WATCH_S - 0.5, {"gps": 1, "imu": 2, "attitude": 4})
     assert r.due(rates.WATCH_S - 0.5) == [], "asked before watching for WATCH_S"
     stream(r, ap, rates.WATCH_S - 0.5, rates.WATCH_S + 0.1, {"gps": 1, "imu": 2, "attitude": 4})
@@ -88,7 +91,7 @@ def test_slow_streams_are_asked_for_after_watching_them():
 
 def test_streams_fast_enough_are_never_asked_for_less():
     ap = Autopilot()
-    r = rates.StreamRates(lambda text: None)
+    r = rates.StreamRates(lambda text: None, MIN_IMU_HZ)
     stream(r, ap, 0.0, 4.0, {"gps": 5, "imu": 200, "attitude": 50})      # a 5 Hz receiver is left alone
     assert r.due(4.0) == []
     stream(r, ap, 4.0, 30.0, {"gps": 5, "imu": 200, "attitude": 50})
@@ -97,7 +100,7 @@ def test_streams_fast_enough_are_never_asked_for_less():
 
 def test_asked_again_then_the_imu_that_did_not_come_is_said_once():
     ap, said = Autopilot(), []
-    r = rates.StreamRates(said.append)
+    r = rates.StreamRates(said.append, MIN_IMU_HZ)
     t, tries = 0.0, []
     while t < 60.0:
         stream(r, ap, t, t + 0.5, {"gps": 5, "imu": 2, "attitude": 20})
@@ -110,7 +113,7 @@ def test_asked_again_then_the_imu_that_did_not_come_is_said_once():
 
 def test_an_imu_raised_but_not_to_50_hz_and_fast_enough_to_integrate_is_not_said():
     ap, said = Autopilot(), []
-    r = rates.StreamRates(said.append, enough_hz=8.0)
+    r = rates.StreamRates(said.append, MIN_IMU_HZ)
     for t in range(0, 60):
         stream(r, ap, float(t), t + 1.0, {"gps": 5, "imu": 25, "attitude": 20})
         r.due(t + 1.0)
@@ -119,7 +122,7 @@ def test_an_imu_raised_but_not_to_50_hz_and_fast_enough_to_integrate_is_not_said
 
 def test_px4_is_asked_for_highres_imu():
     ap = Autopilot(PX4)
-    r = rates.StreamRates(lambda text: None)
+    r = rates.StreamRates(lambda text: None, MIN_IMU_HZ)
     stream(r, ap, 0.0, 3.5, {"gps": 5, "attitude": 20})      # PX4's normal mode: no IMU stream at all
     assert ap.asked(r.due(3.5)) == [("interval", "HIGHRES_IMU", rates.IMU_HZ)]
     for t in range(4, 30):
@@ -130,7 +133,7 @@ def test_px4_is_asked_for_highres_imu():
 def test_the_imu_the_vehicle_sends_is_the_one_asked_for():
     """An ArduPilot that sends HIGHRES_IMU (a vehicle that was set up so) is asked for HIGHRES_IMU."""
     ap = Autopilot(AP)
-    r = rates.StreamRates(lambda text: None, imu_kind=lambda: "HIGHRES_IMU")
+    r = rates.StreamRates(lambda text: None, MIN_IMU_HZ, imu_kind=lambda: "HIGHRES_IMU")
     stream(r, ap, 0.0, 3.5, {"gps": 5, "imu": 4, "attitude": 20}, imu="highres_imu")
     assert ap.asked(r.due(3.5)) == [("interval", "HIGHRES_IMU", rates.IMU_HZ)]
 
@@ -138,7 +141,7 @@ def test_the_imu_the_vehicle_sends_is_the_one_asked_for():
 def test_resent_fixes_count_once():
     """ArduPilot resends its last fix at the stream's rate: a 1 Hz receiver streamed at 10 Hz is 1 Hz."""
     ap = Autopilot()
-    r = rates.StreamRates(lambda text: None)
+    r = rates.StreamRates(lambda text: None, MIN_IMU_HZ)
     for k in range(40):
         r.heard(ap.gps(k // 10), k / 10)
     assert r.rate("GPS_RAW_INT", 3.9) == pytest.approx(1.0)
@@ -147,7 +150,7 @@ def test_resent_fixes_count_once():
 def test_rates_are_on_the_vehicles_clock_not_the_links():
     """A burst (a link that held messages back) is not a fast stream."""
     ap = Autopilot()
-    r = rates.StreamRates(lambda text: None)
+    r = rates.StreamRates(lambda text: None, MIN_IMU_HZ)
     for k in range(10):
         r.heard(ap.raw_imu(k * 0.5), 2.0 + k * 0.001)      # 10 samples at 2 Hz, arriving within 10 ms
     assert r.rate("RAW_IMU", 2.1) == pytest.approx(2.0)
@@ -155,7 +158,7 @@ def test_rates_are_on_the_vehicles_clock_not_the_links():
 
 def test_asked_again_after_the_autopilot_restarts():
     ap = Autopilot()
-    r = rates.StreamRates(lambda text: None)
+    r = rates.StreamRates(lambda text: None, MIN_IMU_HZ)
     t = 0.0
     while t < 40.0:
         stream(r, ap, t, t + 0.5, {"gps": 1, "imu": 50, "attitude": 20})
@@ -168,7 +171,7 @@ def test_asked_again_after_the_autopilot_restarts():
 
 def test_an_autopilot_of_another_kind_is_not_asked():
     ap = Autopilot(mavlink.MAV_AUTOPILOT_GENERIC)
-    r = rates.StreamRates(lambda text: None)
+    r = rates.StreamRates(lambda text: None, MIN_IMU_HZ)
     stream(r, ap, 0.0, 10.0, {"gps": 1, "imu": 1})
     assert r.due(10.0) == []
 
@@ -176,7 +179,7 @@ def test_an_autopilot_of_another_kind_is_not_asked():
 def test_a_stream_slowed_later_is_asked_for_again():
     """A ground station on the same port sets RAW_IMU to 4 Hz a minute in: guard asks for 50 again."""
     ap = Autopilot()
-    r = rates.StreamRates(lambda text: None)
+    r = rates.StreamRates(lambda text: None, MIN_IMU_HZ)
     asked, t = [], 0.0
     while t < 100.0:
         stream(r, ap, t, t + 0.5, {"gps": 5, "imu": 50 if t < 60.0 else 4, "attitude": 20})
@@ -191,7 +194,7 @@ def test_a_stream_slowed_later_is_asked_for_again():
 def test_a_stream_that_never_comes_does_not_stop_the_others_being_watched():
     """ATTITUDE never comes (asked TRIES times, then left); the IMU, slowed later, is still asked for."""
     ap = Autopilot()
-    r = rates.StreamRates(lambda text: None)
+    r = rates.StreamRates(lambda text: None, MIN_IMU_HZ)
     asked, t = [], 0.0
     while t < 120.0:
         stream(r, ap, t, t + 0.5, {"gps": 5, "imu": 50 if t < 80.0 else 2})
@@ -205,7 +208,7 @@ def test_no_fix_yet_is_no_slow_receiver():
     """ArduPilot stamps GPS_RAW_INT with its last fix: before the first, every message has one time.
     Nothing is asked of the GNSS until fixes come, and then only if they come slowly."""
     ap = Autopilot()
-    r = rates.StreamRates(lambda text: None)
+    r = rates.StreamRates(lambda text: None, MIN_IMU_HZ)
     t = 0.0
     while t < 30.0:
         for k in range(5):
@@ -221,7 +224,7 @@ def test_only_the_autopilot_component_is_asked():
     """A HEARTBEAT of another component of the vehicle (a camera, a gimbal with the autopilot field
     set) names no one to ask."""
     ap = Autopilot()
-    r = rates.StreamRates(lambda text: None)
+    r = rates.StreamRates(lambda text: None, MIN_IMU_HZ)
     for k in range(10):
         r.heard(ap.heartbeat(component=154), float(k))
         r.heard(ap.raw_imu(float(k)), float(k))
@@ -232,7 +235,7 @@ def test_a_stream_about_the_threshold_is_not_asked_for_again_and_again():
     """An IMU wandering between 37 and 44 Hz: asked for once it falls under 40, then left until it
     has come at 90 % of the 50 Hz asked; not an ask every time it dips."""
     ap = Autopilot()
-    r = rates.StreamRates(lambda text: None)
+    r = rates.StreamRates(lambda text: None, MIN_IMU_HZ)
     asked, t = 0, 0.0
     while t < 600.0:
         hz = 37.0 if int(t / 7) % 2 else 44.0
