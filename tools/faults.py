@@ -308,6 +308,8 @@ def kill_case(at_s: float, workdir: Path, speedup: float, seed: int = 1) -> dict
     time.sleep(0.05)                            # what is on its way
     proc.send_signal(signal.SIGKILL)
     proc.wait(timeout=10)
+    proc.reader.join(timeout=10)
+    proc.stdout.close()
     sock.close()
     cut = next(logdir.glob("*.mcap"))
     whole = workdir / f"recovered-{at_s:.2f}.mcap"
@@ -432,6 +434,7 @@ def memory(args) -> int:
     proc.send_signal(signal.SIGINT)
     proc.wait(timeout=30)
     proc.reader.join(timeout=10)                 # to the end of what it said
+    proc.stdout.close()
     summary = next((line for line in proc.said if "stopped after" in line), "")
     alarms = int(summary.split(" alarm(s)")[0].rsplit(" ", 1)[-1]) if " alarm(s)" in summary else -1
     sock.close()

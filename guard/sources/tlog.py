@@ -54,10 +54,19 @@ class TlogReader(LogSource):
         self.first_time_us: int | None = None
         self.last_time_us: int | None = None
         self._clock: tuple[int, float] | None = None     # (t0, rate): the time stamps rescaled (guard.sources.clock)
-        if peek:                # UTC from the start (a no-fix GNSS message has no time to learn it from)
-            if system_id:
-                self.system_id = system_id = self._gnss_system(system_id)
-            probe = TlogReader(path, system_id, peek=False)
+        if peek:
+            try:
+                self._peek(path, system_id)
+            except BaseException:
+                self._file.close()
+                raise
+
+    def _peek(self, path: str, system_id: int) -> None:
+        """UTC from the start (a no-fix GNSS message has no time to learn it from), and the clock."""
+        if system_id:
+            self.system_id = system_id = self._gnss_system(system_id)
+        probe = TlogReader(path, system_id, peek=False)
+        try:
             for n, _ in enumerate(probe.samples()):
                 if probe.utc_offset_us is not None or n >= self.PEEK_SAMPLES:
                     break
@@ -66,6 +75,7 @@ class TlogReader(LogSource):
             # or where the vehicle did not go far enough for that, against its epochs
             track = list(probe.track())
             self._clock = motion_clock(track, self.notes) or epoch_clock([f[0] for f in track], self.notes)
+        finally:
             probe.close()
 
     def close(self) -> None:

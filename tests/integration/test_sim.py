@@ -13,6 +13,7 @@ import datetime
 import json
 import struct
 import types
+from pathlib import Path
 
 import guard.core.geo
 import guard.sources.mavlink  # noqa
@@ -47,7 +48,7 @@ def read_tlog(path) -> list:
 
 def raw_frames(path) -> list[tuple[int, bytes]]:
     """Split a tlog into (8-byte prefix, MAVLink 2 frame) by hand; fails on anything else."""
-    data = open(path, "rb").read()
+    data = Path(path).read_bytes()
     out, pos = [], 0
     while pos < len(data):
         (prefix,) = struct.unpack_from(">Q", data, pos)
@@ -183,7 +184,8 @@ def test_a_replay_is_the_same_on_another_day(tmp_path, monkeypatch):
     """The replay takes the magnetic declination on the day the log was recorded, not today."""
     tlog = tmp_path / "clean.tlog"
     run(dataclasses.replace(scn.load("clean"), duration_s=30.0), 1, tlog=str(tlog))
-    assert guard.sources.tlog.TlogReader(str(tlog)).date == datetime.date(2026, 1, 1)     # TLOG_EPOCH_US
+    with guard.sources.tlog.TlogReader(str(tlog)) as reader:
+        assert reader.date == datetime.date(2026, 1, 1)     # TLOG_EPOCH_US
 
     def estimates() -> list:
         trace = Trace()

@@ -79,7 +79,8 @@ def test_round_trip_gives_the_tlogs_samples(paper):
     # the order of the stream: at equal time stamps the IMU goes out before the GNSS, as in the tlog
     assert [type(s) for s in tlog if not isinstance(s, VehicleType)] == \
            [type(s) for s in ulg if not isinstance(s, VehicleType)]
-    assert reader.date == open_log(str(paper[0])).date          # the same day: the same declination
+    with open_log(str(paper[0])) as tlog_reader:
+        assert reader.date == tlog_reader.date          # the same day: the same declination
     assert reader.first_time_us == 0 and reader.last_time_us == 60_000_000
     assert reader.rates_hz == pytest.approx({"sensor_combined": 10.0, "sensor_gps": 10.0,
                                              "vehicle_magnetometer": 10.0})

@@ -80,7 +80,9 @@ def both_paths(request, tmp_path_factory):
         with CanPublisher(url) as publisher:
             truth = run(scenario.load(name), seed, tlog=str(tlog), can=publisher, fast=True)
         # the day the tlog says it was recorded, as its replay takes it (the magnetic declination's)
-        alarms, gnss_t_us = drain(source, Monitor(Config().monitor, record_tests=False, date=TlogReader(str(tlog)).date))
+        with TlogReader(str(tlog)) as reader:
+            date = reader.date
+        alarms, gnss_t_us = drain(source, Monitor(Config().monitor, record_tests=False, date=date))
     return {"alarms": alarms, "gnss_t_us": gnss_t_us, "stats": source.stats, "messages": source.messages,
             "report": replay(str(tlog)), "tlog_gnss_t_us": truth["trajectory"]["t_usec"]}
 

@@ -49,6 +49,7 @@ def run_topology(tmp_path: Path, with_gcs_link: bool) -> list[tuple[int, int, st
     config.write_text(f'[link]\ngcs = "udpout:127.0.0.1:{guard_in}"\n' if with_gcs_link else "")
     procs = []
     texts = []
+    guard_out = None
     try:
         procs.append(subprocess.Popen(
             [MAVPROXY, f"--master=udpin:127.0.0.1:{master}", f"--master=udpin:127.0.0.1:{guard_in}",
@@ -83,6 +84,8 @@ def run_topology(tmp_path: Path, with_gcs_link: bool) -> list[tuple[int, int, st
             except subprocess.TimeoutExpired:
                 p.kill()
         gcs.close()
+        if guard_out is not None:
+            guard_out.close()
     return texts
 
 

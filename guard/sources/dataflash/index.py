@@ -55,6 +55,15 @@ class _Formats(dict):
 class _Index(DFReader.DFReader_binary):
     """DFReader's binary reader with its pure-Python indexer, checked formats and no GPS clock."""
 
+    def __init__(self, *args, **kwargs):
+        try:
+            super().__init__(*args, **kwargs)
+        except BaseException:       # a log too corrupt to index: the file DFReader opened is closed, not left
+            for part in ("data_map", "filehandle"):
+                if getattr(self, part, None) is not None:
+                    getattr(self, part).close()
+            raise
+
     def init_arrays(self, progress_callback=None):
         self.formats = _Formats(self.formats)
         super().init_arrays(progress_callback)
