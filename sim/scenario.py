@@ -94,6 +94,8 @@ class Noise:
     mag_white_gauss: float = 0.004
     # this vehicle's own sensors (the defaults are the ideal ones); angles as in the docstring
     mag_offset_deg: float = 0.0           # compass heading error, east positive: heading read = true + this
+    mag_wander_deg: float = 0.0           # and a heading error that comes and goes (a multicopter's motors' and
+    mag_wander_tau_s: float = 3.0         # wiring's field): first-order Gauss-Markov, its sigma and correlation time
     accel_scale: float = 0.0              # scale-factor error: 0.02 reads 2 % high (applied before bias, noise)
     gyro_scale: float = 0.0               # likewise for the rate
     imu_yaw_mount_deg: float = 0.0        # accelerometer and gyro (not the compass) mounted yawed by this
@@ -233,6 +235,9 @@ def parse(data: dict, where: str) -> Scenario:
                                     f"{SIGNED_NOISE[name]:g}, got {value}")
         elif value < 0:
             raise ScenarioError(f"{where}: noise.{name}: must be >= 0, got {value}")
+    if scenario.noise.mag_wander_deg > 0 and scenario.noise.mag_wander_tau_s <= 0:
+        raise ScenarioError(f"{where}: noise.mag_wander_tau_s: must be > 0 with a mag_wander_deg, "
+                            f"got {scenario.noise.mag_wander_tau_s}")
     for a in scenario.attacks:
         if a.start_s < 0 or a.duration_s <= 0:
             raise ScenarioError(f"{where}: attack: start_s must be >= 0 and duration_s > 0")

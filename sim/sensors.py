@@ -4,7 +4,10 @@ GNSS: position error = white + first-order Gauss-Markov (real receivers' error i
 tens of seconds); velocity white. IMU in body axes FRD (x forward, y right, z down): the
 accelerometer measures specific force (-g on z at rest), the gyro the body rate, plus white noise
 and a constant bias. Magnetometer: the World Magnetic Model's field at the start, rotated into the
-body frame by the vehicle's heading, plus white noise.
+body frame by the vehicle's heading, plus white noise, and where `mag_wander_deg` is set a heading
+error that comes and goes, first-order Gauss-Markov over `mag_wander_tau_s` (on a multicopter the
+motors' and the wiring's field turn a real compass by degrees over seconds, an error no white noise
+model covers: what `guard tune`'s IMU fusion rate is fitted to).
 
 A vehicle's own sensors (guard_sim.scenario.Noise): the IMU may be mounted yawed (`imu_yaw_mount_deg`) and
 read high or low (`accel_scale`, `gyro_scale`); the compass may be yawed (`mag_offset_deg`). The
@@ -65,6 +68,11 @@ class Sensors:
         self.field_ned = earth_field_ned_gauss(st.lat_deg, st.lon_deg, st.alt_m, st.year)
         self.frozen: GnssReading | None = None
         self.last_gnss_t: float | None = None
+        # the compass's wandering heading error (rad), from a stream of its own: runs without it draw as before
+        self.rng_wander = np.random.default_rng(np.random.SeedSequence(seed).spawn(5)[4]) \
+            if n.mag_wander_deg > 0 else None
+        self.wander = self.rng_wander.normal(0.0, math.radians(n.mag_wander_deg)) if self.rng_wander else 0.0
+        self.last_imu_t: float | None = None
 
     def _offset(self, t_s: float, sensor: str, channel: str) -> float:
         total = 0.0
@@ -119,8 +127,14 @@ class Sensors:
         chi = math.pi / 2 - s.psi
         fn, fe, fd = self.field_ned
         mag = np.array([fn * math.cos(chi) + fe * math.sin(chi), -fn * math.sin(chi) + fe * math.cos(chi), fd])
-        # a compass yawed by the offset reads the heading chi + offset
-        mag = yawed(mag, math.radians(n.mag_offset_deg)) + self.rng_mag.normal(0, n.mag_white_gauss, 3)
+        # a compass yawed by the offset (and the wander) reads the heading chi + offset + wander
+        if self.rng_wander is not None and self.last_imu_t is not None:
+            # Gauss-Markov: b(k+1) = phi b(k) + sqrt(1 - phi^2) sigma w(k)
+            phi = math.exp(-(t_s - self.last_imu_t) / n.mag_wander_tau_s)
+            self.wander = phi * self.wander + math.sqrt(1 - phi * phi) * self.rng_wander.normal(
+                0.0, math.radians(n.mag_wander_deg))
+        self.last_imu_t = t_s
+        mag = yawed(mag, math.radians(n.mag_offset_deg) + self.wander) + self.rng_mag.normal(0, n.mag_white_gauss, 3)
         for i, axis in enumerate("xyz"):
             acc[i] += self._offset(t_s, "accel", axis)
             gyro[i] += self._offset(t_s, "gyro", axis)

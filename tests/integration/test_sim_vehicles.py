@@ -36,7 +36,7 @@ BASE = {"name": "vehicles", "duration_s": 30.0, "start": {"heading_deg": 90.0},
 # no IMU noise or bias: readings are the true values (and the knobs' effect) to the message's integer
 NOISELESS = {"accel_white_mps2": 0.0, "accel_bias_mps2": 0.0, "gyro_white_radps": 0.0, "gyro_bias_radps": 0.0,
              "mag_white_gauss": 0.0}
-NEW_KEYS = {"mag_offset_deg": 0.0, "accel_scale": 0.0, "gyro_scale": 0.0, "imu_yaw_mount_deg": 0.0,
+NEW_KEYS = {"mag_offset_deg": 0.0, "mag_wander_deg": 0.0, "mag_wander_tau_s": 3.0, "accel_scale": 0.0, "gyro_scale": 0.0, "imu_yaw_mount_deg": 0.0,
             "gnss_h_acc_reported": True, "gnss_vel_acc_reported": True}
 
 
@@ -94,6 +94,7 @@ def wrap_deg(x):
 
 @pytest.mark.parametrize("knob, value, expected", [
     ("mag_offset_deg", 5.0, {("RAW_IMU", "xmag"), ("RAW_IMU", "ymag")}),
+    ("mag_wander_deg", 3.0, {("RAW_IMU", "xmag"), ("RAW_IMU", "ymag")}),
     ("accel_scale", 0.1, {("RAW_IMU", "xacc"), ("RAW_IMU", "yacc"), ("RAW_IMU", "zacc")}),
     ("gyro_scale", 0.1, {("RAW_IMU", "zgyro")}),            # a level vehicle turns about z only
     ("imu_yaw_mount_deg", 10.0, {("RAW_IMU", "xacc"), ("RAW_IMU", "yacc")}),
@@ -151,6 +152,18 @@ def test_mag_offset_turns_the_compass_heading_east(runs):
         yaw = np.array([heading(mx, my, declination) for mx, my in mxy])
         error = wrap_deg(np.degrees(yaw - np.array(truth["trajectory"]["yaw_rad"])))
         assert error.mean() == pytest.approx(-offset, abs=0.3)
+
+
+def test_mag_wander_is_a_gauss_markov_heading_error(runs):
+    """mag_wander_deg = 4 over mag_wander_tau_s = 2: the compass heading parts from the one without by
+    about 4 degrees rms, and its error one sample (20 ms) apart is nearly the same, 5 s apart nearly
+    unrelated: correlated, where the white noise is not."""
+    base, _ = runs(**NOISELESS)
+    other, _ = runs(**NOISELESS, mag_wander_deg=4.0, mag_wander_tau_s=2.0)
+    e = wrap_deg(compass_deg(other) - compass_deg(base))
+    assert 2.5 < np.sqrt(np.mean(e * e)) < 6.0
+    corr = lambda lag: np.corrcoef(e[:-lag], e[lag:])[0, 1]      # noqa: E731
+    assert corr(1) > 0.95 and abs(corr(250)) < 0.5             # IMU at 50 Hz: 20 ms and 5 s
 
 
 def test_mag_offset_noiseless_is_a_rotation_of_the_field(runs):
@@ -299,11 +312,17 @@ def test_rates_and_attack_index(imu_hz, gnss_hz):
 @pytest.mark.parametrize("key, value", [
     ("mag_offset_deg", 30.5), ("mag_offset_deg", -31.0), ("accel_scale", 0.25), ("accel_scale", -0.21),
     ("gyro_scale", 0.3), ("gyro_scale", -1.0), ("imu_yaw_mount_deg", 45.0), ("imu_yaw_mount_deg", -30.01),
+    ("mag_wander_deg", -1.0), ("mag_wander_tau_s", -2.0),
     ("mag_offset_deg", "5"), ("accel_scale", True), ("gnss_vel_acc_reported", 0), ("gnss_h_acc_reported", "no"),
 ])
 def test_bad_value_is_named(key, value):
     with pytest.raises(ScenarioError, match=key):
         scn.parse({**BASE, "noise": {key: value}}, "t.toml")
+
+
+def test_a_wander_needs_a_correlation_time():
+    with pytest.raises(ScenarioError, match="mag_wander_tau_s"):
+        scn.parse({**BASE, "noise": {"mag_wander_deg": 2.0, "mag_wander_tau_s": 0.0}}, "t.toml")
 
 
 @pytest.mark.parametrize("key, value", [("mag_offset_deg", -30), ("accel_scale", 0.2), ("gyro_scale", -0.2),
