@@ -6,29 +6,15 @@ Every sensor's innovations, normalised by their covariance (z = r_i / sqrt(S_ii)
 when the model fits. From logs without an attack, guard tune fits, in this order:
 1. the receiver's latency (`filter.gnss_delay_s`): the delay in DELAYS that leaves the GNSS innovations
    smallest (a latency shows in turns and speed changes);
-2. the IMU's fusion rate (`monitor.imu_fusion_hz`): the fastest of FUSION_HZ at which none of the
-   IMU's innovations (magnetometer, gyro, accelerometer) wanders beyond its model over a CUSUM's
-   window (BLOCK fusions; the spread of their block means, as below); if none, the rate is kept and
-   step 3 widens the noise to the wander instead. A real copter's compass turns with its motors'
-   field, its levelled accelerometers carry the attitude's error: errors that last longer than a
-   50 Hz fusion's 20 ms, so each is counted as many independent ones, and the tests sum them into
-   alarms. Fused as fast as they change and no faster, they fit the model as it is, and the noise
-   floors need not be blunted to hide them. The cost, said when the rate is lowered: an IMU bias is
-   caught later (on the simulator's white IMU a 0.05 rad/s gyro bias at 3.1 s fused at 10 Hz against
-   1.5 s at 50 Hz; at 5 Hz the filter learns it as the gyro's own bias and never alarms, so 10 Hz is
-   the slowest tried). Measured every sensor kept in use (exclude_on_alarm off): the one that wanders
-   most would otherwise be set aside by its first alarm and no longer counted;
-3. each sensor's noise floor: scaled until its innovations' standard deviation over all the logs is
+2. each sensor's noise floor: scaled until its innovations' standard deviation over all the logs is
    1 / MARGIN of the model's (the noise set MARGIN above what the logs show), within BOUNDS of the
-   defaults and never below the config tune starts from (a few clean logs do not hold every
-   manoeuvre: a profile sharper than the defaults alarmed on held-out flights that the defaults'
-   floors kept quiet, 10 alarms against 9 on the Erle copters of the README); a few passes, as the filter's own uncertainty is part of each innovation's. The
+   defaults; a few passes, as the filter's own uncertainty is part of each innovation's. The
    standard deviation is the larger of the samples' and their wander's: the spread of their means
    over blocks of guard.core.longrun.BLOCK samples, scaled to one sample's (a real copter's compass
    or receiver sits well inside its model sample by sample while its mean over a second wanders,
    and a CUSUM sums the wander: fitted to the samples alone, the noise came out smaller and the
    same logs raised more alarms with the profile than without it);
-4. the compass's offset (`filter.mag_offset_rad`) and, on wheels, their slip (`filter.slip_rad_per_mps2`):
+3. the compass's offset (`filter.mag_offset_rad`) and, on wheels, their slip (`filter.slip_rad_per_mps2`):
    what the filter learnt, averaged over the logs.
 Then it replays the logs with the profile and prints each one's margin: the largest statistic over its
 threshold per sensor (1.0 is an alarm). The profile holds only what differs from the base config.
@@ -52,8 +38,6 @@ from guard.runtime.replay import replay
 from guard.sinks.base import Sink
 
 DELAYS = (0.0, 0.05, 0.1, 0.15, 0.2, 0.25)
-FUSION_HZ = (50.0, 25.0, 10.0)   # the IMU fusion rates tried (Hz), from the fastest down
-IMU_SENSORS = (Sensor.MAG, Sensor.GYRO, Sensor.ACCEL)
 MARGIN = 1.25           # the fitted noise is this much above what the logs show
 BOUNDS = (0.5, 20.0)    # a floor is scaled within these factors of its default
 PASSES = 3
@@ -97,12 +81,6 @@ class Innovations(Sink):
                 self.mag_offset = float(e.x[BM])
                 self.slip = float(e.x[KS])
 
-    def wander_factor(self, sensor: Sensor) -> float | None:
-        """The spread of the innovations' block means over the model's (1: they fit over a CUSUM's
-        window; None: too few blocks to say)."""
-        blocks = self.blocks.get(sensor, 0)
-        return math.sqrt(self.wander[sensor] / blocks) if blocks >= MIN_BLOCKS else None
-
     def factor(self, sensor: Sensor) -> float | None:
         """The innovations' standard deviation over the model's: the samples', or their wander's
         where that is larger (over at least MIN_BLOCKS blocks)."""
@@ -113,31 +91,6 @@ class Innovations(Sink):
         blocks = self.blocks.get(sensor, 0)
         wander = self.wander[sensor] / blocks if blocks >= MIN_BLOCKS else 0.0
         return math.sqrt(max(per_sample, wander))
-
-
-def with_fusion_hz(cfg: Config, hz: float) -> Config:
-    return dataclasses.replace(cfg, monitor=dataclasses.replace(cfg.monitor, imu_fusion_hz=hz))
-
-
-def fusion_rate(logs: list[str], cfg: Config, say: Callable[[str], None]) -> float:
-    """The fastest rate of FUSION_HZ (none faster than cfg's own) at which no IMU sensor's innovations
-    wander beyond their model; where none is, cfg's own (the noise floors then widen to the wander)."""
-    base = cfg.monitor.imu_fusion_hz         # 0: every sample
-    for hz in [base] + [hz for hz in FUSION_HZ if hz < base or base == 0]:
-        trial = with_fusion_hz(cfg, hz)
-        sink, _ = measure(logs, dataclasses.replace(trial, monitor=dataclasses.replace(trial.monitor,
-                                                                                      exclude_on_alarm=False)))
-        factors = {s: f for s in IMU_SENSORS if (f := sink.wander_factor(s)) is not None}
-        if not factors:
-            say("IMU: too few of its innovations fused to fit its rate (a slow or absent IMU): kept")
-            return base
-        worst = max(factors, key=factors.get)
-        say(f"IMU fused at {hz:g} Hz: its innovations wander up to {factors[worst]:.2f}x the model "
-            f"({worst}, over {BLOCK} fusions)" if hz else
-            f"IMU fused at every sample: its innovations wander up to {factors[worst]:.2f}x the model")
-        if factors[worst] <= 1.0:
-            return hz
-    return base
 
 
 def with_filter(cfg: Config, **changes) -> Config:
@@ -183,12 +136,7 @@ def tune(logs: list[str], base: Config, say: Callable[[str], None] = print) -> t
         scores.append((gnss_z2(sink), delay))
         say(f"latency {delay:.2f} s: GNSS innovations {math.sqrt(scores[-1][0]):.2f}x the model")
     cfg = with_filter(base, gnss_delay_s=min(scores)[1])
-    # 2. the IMU's fusion rate
-    cfg = with_fusion_hz(cfg, fusion_rate(logs, cfg, say))
-    if cfg.monitor.imu_fusion_hz != base.monitor.imu_fusion_hz:
-        say(f"the IMU is fused at {cfg.monitor.imu_fusion_hz:g} Hz: its errors last longer than a faster "
-            "fusion assumes; an IMU bias is caught later than at the default rate")
-    # 3. each sensor's noise
+    # 2. each sensor's noise
     defaults = FilterConfig()
     for _ in range(PASSES):
         sink, _ = measure(logs, cfg)
@@ -199,11 +147,9 @@ def tune(logs: list[str], base: Config, say: Callable[[str], None] = print) -> t
                 continue
             for key in keys:
                 lo, hi = (getattr(defaults, key) * b for b in BOUNDS)
-                lo = max(lo, getattr(base.monitor.filter, key))     # never sharper than the start
-                hi = max(hi, lo)
                 changes[key] = min(max(getattr(cfg.monitor.filter, key) * f * MARGIN, lo), hi)
         cfg = with_filter(cfg, **changes)
-    # 4. the compass's offset
+    # 3. the compass's offset
     sink, reports = measure(logs, cfg)
     if sink.mag_offset is not None:
         # an air vehicle's slip is never learnt: it stays where it started, and the profile leaves it out
@@ -219,8 +165,6 @@ def tune(logs: list[str], base: Config, say: Callable[[str], None] = print) -> t
     tuned, was = cfg.monitor.filter, base.monitor.filter
     profile = {"filter": {f.name: round(getattr(tuned, f.name), 6) for f in dataclasses.fields(FilterConfig)
                           if getattr(tuned, f.name) != getattr(was, f.name)}}
-    if cfg.monitor.imu_fusion_hz != base.monitor.imu_fusion_hz:
-        profile["monitor"] = {"imu_fusion_hz": cfg.monitor.imu_fusion_hz}
     return profile, cfg
 
 
