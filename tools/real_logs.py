@@ -7,14 +7,17 @@ measured on real vehicles it was never tuned on.
     python tools/real_logs.py ../shared/data/real LOGS_DIR ...          # the defaults
     python tools/real_logs.py LOGS_DIR --set monitor.max_wander_factor=1   # a config key changed
     python tools/real_logs.py LOGS_DIR --config my-vehicle.toml --json out/real.json
-    python tools/real_logs.py LOGS_DIR --attack step:2 --attack step:10 --attack ramp:0.3
+    python tools/real_logs.py LOGS_DIR --attack step:2 --attack step:10 --attack ramp:0.3 --attack gyro:0.05
 
 `--attack` writes an attack into each flight's own fixes, from its fix at 30, 50 and 70 % of them
 (each a run of its own), and says how often and how fast it was caught: a GNSS alarm within
 WINDOW_S of the onset, beside how often the same window held a GNSS alarm without the attack (the
 chance of it). `step:M` moves the position M metres north, `ramp:V` drifts it north at V m/s; the
-velocity is left as the receiver gave it (a naive spoof). This is detection measured on real
-vehicles' noise, which the simulator's figures are not.
+velocity is left as the receiver gave it (a naive spoof). `gyro:W` adds W rad/s to the gyro's z axis
+(a bias on the yaw rate, as an injection into the IMU would): caught by an alarm on any sensor
+within WINDOW_S, as the heading it bends shows in the compass's test or, on the move, in the
+GNSS velocity's, beside the chance of an alarm on any sensor in the same window. This is detection
+measured on real vehicles' noise, which the simulator's figures are not.
 
 A log is .tlog, .bin or .ulg, recognised by its content; a file that is none of them is listed with
 the reason and skipped.
@@ -40,7 +43,7 @@ import tomllib                                       # noqa: E402
 from guard.config import parse, read                 # noqa: E402
 from guard.errors import GuardError                  # noqa: E402
 from guard.core.geo import LocalFrame                # noqa: E402
-from guard.model.samples import GnssFix              # noqa: E402
+from guard.model.samples import GnssFix, ImuSample   # noqa: E402
 from guard.runtime.replay import replay              # noqa: E402
 import pymap3d                                       # noqa: E402
 
@@ -61,7 +64,7 @@ def config_of(path: str | None, sets: tuple[str, ...]):
 
 
 ONSETS = (0.3, 0.5, 0.7)        # at which share of a log's fixes an attack starts, one run each
-WINDOW_S = {"step": 5.0, "ramp": 30.0}      # an alarm this long after the onset is the attack caught
+WINDOW_S = {"step": 5.0, "ramp": 30.0, "gyro": 10.0}   # an alarm this long after the onset is the attack caught
 RECEIVER = {"gnss_pos", "gnss_vel"}
 
 
@@ -107,16 +110,18 @@ def attack(kind: str, size: float, onset_us: int):
 
     def inject(samples):
         for s in samples:
-            if isinstance(s, GnssFix) and s.fix_ok and s.t_us >= onset_us:
+            if kind == "gyro" and isinstance(s, ImuSample) and s.t_us >= onset_us:
+                s = dataclasses.replace(s, gyro_z_radps=s.gyro_z_radps + size)
+            elif kind != "gyro" and isinstance(s, GnssFix) and s.fix_ok and s.t_us >= onset_us:
                 s = north(s, size if kind == "step" else size * (s.t_us - onset_us) / 1e6)
             yield s
     return inject
 
 
-def caught(alarms: list[dict], onset_us: int, window_s: float) -> float | None:
-    """The delay (s) of the first GNSS alarm within window_s of the onset; None: none."""
+def caught(alarms: list[dict], onset_us: int, window_s: float, any_sensor: bool = False) -> float | None:
+    """The delay (s) of the first GNSS alarm (any sensor's) within window_s of the onset; None: none."""
     for a in alarms:
-        if a["sensor"] in RECEIVER and onset_us <= a["time_usec"] <= onset_us + window_s * 1e6:
+        if (any_sensor or a["sensor"] in RECEIVER) and onset_us <= a["time_usec"] <= onset_us + window_s * 1e6:
             return (a["time_usec"] - onset_us) / 1e6
     return None
 
@@ -142,8 +147,9 @@ def one(job: tuple[str, str | None, tuple[str, ...], tuple[str, ...]]) -> dict:
         for at in ONSETS:
             onset = span.fixes[int(at * (len(span.fixes) - 1))]
             hit = replay(path, cfg, inject=attack(kind, float(size), onset))
-            runs.append({"onset_us": onset, "delay_s": caught(hit["alarms"], onset, WINDOW_S[kind]),
-                         "by_chance_s": caught(r["alarms"], onset, WINDOW_S[kind])})
+            imu = kind == "gyro"
+            runs.append({"onset_us": onset, "delay_s": caught(hit["alarms"], onset, WINDOW_S[kind], imu),
+                         "by_chance_s": caught(r["alarms"], onset, WINDOW_S[kind], imu)})
         out["attacks"][spec] = runs
     return out
 
@@ -155,22 +161,25 @@ def attack_spec(text: str) -> str:
     except ValueError:
         ok = False
     if not ok:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected step:METRES or ramp:METRES_PER_S, a positive number")
+        raise argparse.ArgumentTypeError(f"{text!r}: expected step:METRES, ramp:METRES_PER_S or gyro:RAD_PER_S, "
+                                         "a positive number")
     return text
 
 
 def attack_lines(results: list[dict], attacks: list[str]) -> list[str]:
     """A line per attack: how often and how fast it was caught over every log and onset."""
-    lines = [f"attacks written into each flight's fixes from its fix at {', '.join(f'{a:.0%}' for a in ONSETS)} "
-             "of them, north, the velocity untouched:"]
+    lines = [f"attacks written into each flight from its fix at {', '.join(f'{a:.0%}' for a in ONSETS)} "
+             "of them (into the fixes north, the velocity untouched; into the gyro's z axis):"]
     for spec in attacks:
         runs = [run for r in results if "error" not in r for run in r["attacks"][spec]]
         delays = sorted(run["delay_s"] for run in runs if run["delay_s"] is not None)
         chance = sum(run["by_chance_s"] is not None for run in runs)
         kind, size = spec.split(":")
-        what = f"step {float(size):g} m" if kind == "step" else f"ramp {float(size):g} m/s"
+        what = {"step": f"step {float(size):g} m", "ramp": f"ramp {float(size):g} m/s",
+                "gyro": f"gyro bias {float(size):g} rad/s"}[kind]
+        which = "any" if kind == "gyro" else "a GNSS"
         line = f"  {what}: caught within {WINDOW_S[kind]:g} s in {len(delays)} of {len(runs)} runs " \
-               f"(a GNSS alarm in the same window without the attack: {chance})"
+               f"({which} alarm in the same window without the attack: {chance})"
         if delays:
             p95 = delays[min(len(delays) - 1, round(0.95 * (len(delays) - 1)))]
             line += f"; delay median {statistics.median(delays):.1f} s, 95th percentile {p95:.1f} s"
@@ -187,8 +196,8 @@ def main(argv=None) -> int:
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help="a config key changed")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--json", help="write every log's result here")
-    ap.add_argument("--attack", action="append", default=[], type=attack_spec, metavar="step:M|ramp:V",
-                    help="also run each log with this attack written into its fixes (repeatable)")
+    ap.add_argument("--attack", action="append", default=[], type=attack_spec, metavar="step:M|ramp:V|gyro:W",
+                    help="also run each log with this attack written into it (repeatable)")
     args = ap.parse_args(argv)
     logs: list[str] = []
     for f in map(Path, args.folders):
