@@ -261,7 +261,7 @@ def parser() -> argparse.ArgumentParser:
 
     r = command("sim", help="the simulator: a vehicle speaking MAVLink (and DroneCAN)")
     r.add_argument("--scenario", default="paper", help="a shipped scenario (paper, clean, step_east, ramp_north, gyro_bias, accel_bias, "
-                   "freeze, spoof) or a scenario TOML file")
+                   "freeze, spoof, wandering_compass) or a scenario TOML file")
     r.add_argument("--seed", type=int, default=1, help="the simulator's random seed (noise, attack phases)")
     r.add_argument("--tlog", help="write a tlog (and NAME.truth.json beside it)")
     r.add_argument("--bin", help="write the run as an ArduPilot DataFlash log too (and its truth beside it)")
