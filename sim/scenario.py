@@ -103,6 +103,7 @@ class Noise:
     gnss_vel_acc_reported: bool = True    # false: its vel_acc is 0 ("unknown"); true: gnss_vel_white_mps
 
 
+MAX_WANDER_DEG = 30.0       # the compass's wander (1 sigma): as far as its fixed offset may go
 # noise keys that may be negative, with their limits (|value| <= limit); the others must be >= 0
 SIGNED_NOISE = {"mag_offset_deg": 30.0, "accel_scale": 0.2, "gyro_scale": 0.2, "imu_yaw_mount_deg": 30.0}
 
@@ -235,6 +236,9 @@ def parse(data: dict, where: str) -> Scenario:
                                     f"{SIGNED_NOISE[name]:g}, got {value}")
         elif value < 0:
             raise ScenarioError(f"{where}: noise.{name}: must be >= 0, got {value}")
+    if scenario.noise.mag_wander_deg > MAX_WANDER_DEG:
+        raise ScenarioError(f"{where}: noise.mag_wander_deg: must be within 0..{MAX_WANDER_DEG:g}, "
+                            f"got {scenario.noise.mag_wander_deg}")
     if scenario.noise.mag_wander_deg > 0 and scenario.noise.mag_wander_tau_s <= 0:
         raise ScenarioError(f"{where}: noise.mag_wander_tau_s: must be > 0 with a mag_wander_deg, "
                             f"got {scenario.noise.mag_wander_tau_s}")

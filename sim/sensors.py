@@ -7,7 +7,7 @@ and a constant bias. Magnetometer: the World Magnetic Model's field at the start
 body frame by the vehicle's heading, plus white noise, and where `mag_wander_deg` is set a heading
 error that comes and goes, first-order Gauss-Markov over `mag_wander_tau_s` (on a multicopter the
 motors' and the wiring's field turn a real compass by degrees over seconds, an error no white noise
-model covers: what `guard tune`'s IMU fusion rate is fitted to).
+model covers: the shipped scenario `wandering_compass`).
 
 A vehicle's own sensors (guard_sim.scenario.Noise): the IMU may be mounted yawed (`imu_yaw_mount_deg`) and
 read high or low (`accel_scale`, `gyro_scale`); the compass may be yawed (`mag_offset_deg`). The

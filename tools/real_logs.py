@@ -7,16 +7,17 @@ measured on real vehicles it was never tuned on.
     python tools/real_logs.py ../shared/data/real LOGS_DIR ...          # the defaults
     python tools/real_logs.py LOGS_DIR --set monitor.max_wander_factor=1   # a config key changed
     python tools/real_logs.py LOGS_DIR --config my-vehicle.toml --json out/real.json
-    python tools/real_logs.py LOGS_DIR --attack step:2 --attack step:10 --attack ramp:0.3 --attack gyro:0.05
+    python tools/real_logs.py LOGS_DIR --attack step:2 --attack step:10 --attack ramp:0.3 --attack gyro:0.05 --attack accel:0.5
 
 `--attack` writes an attack into each flight's own fixes, from its fix at 30, 50 and 70 % of them
 (each a run of its own), and says how often and how fast it was caught: a GNSS alarm within
 WINDOW_S of the onset, beside how often the same window held a GNSS alarm without the attack (the
 chance of it). `step:M` moves the position M metres north, `ramp:V` drifts it north at V m/s; the
 velocity is left as the receiver gave it (a naive spoof). `gyro:W` adds W rad/s to the gyro's z axis
-(a bias on the yaw rate, as an injection into the IMU would): caught by an alarm on any sensor
-within WINDOW_S, as the heading it bends shows in the compass's test or, on the move, in the
-GNSS velocity's, beside the chance of an alarm on any sensor in the same window. This is detection
+(a bias on the yaw rate, as an injection into the IMU would), `accel:A` A m/s^2 to the
+accelerometer's x axis (forward): caught by an alarm on any sensor within WINDOW_S, as the heading
+or velocity it bends shows in the compass's test or the GNSS velocity's, beside the chance of an
+alarm on any sensor in the same window. This is detection
 measured on real vehicles' noise, which the simulator's figures are not.
 
 A log is .tlog, .bin or .ulg, recognised by its content; a file that is none of them is listed with
@@ -64,7 +65,7 @@ def config_of(path: str | None, sets: tuple[str, ...]):
 
 
 ONSETS = (0.3, 0.5, 0.7)        # at which share of a log's fixes an attack starts, one run each
-WINDOW_S = {"step": 5.0, "ramp": 30.0, "gyro": 10.0}   # an alarm this long after the onset is the attack caught
+WINDOW_S = {"step": 5.0, "ramp": 30.0, "gyro": 10.0, "accel": 10.0}   # an alarm this long after the onset is the attack caught
 RECEIVER = {"gnss_pos", "gnss_vel"}
 
 
@@ -103,19 +104,25 @@ class Span:
 
 
 def attack(kind: str, size: float, onset_us: int):
-    """The sample stream with the attack written into its fixes from onset_us on."""
+    """The sample stream with the attack written into it from onset_us on: into its fixes (step, ramp)
+    or its IMU (gyro, accel). A log whose IMU is not integrated (telemetry at 1 to 4 Hz) cannot
+    catch an IMU attack: its runs count only the alarms that came by chance."""
     def north(fix: GnssFix, dn: float) -> GnssFix:
         lat, lon, _ = pymap3d.enu2geodetic(0.0, dn, 0.0, fix.lat_deg, fix.lon_deg, fix.alt_m)
         return dataclasses.replace(fix, lat_deg=float(lat), lon_deg=float(lon))
 
     def inject(samples):
         for s in samples:
-            if kind == "gyro" and isinstance(s, ImuSample) and s.t_us >= onset_us:
-                s = dataclasses.replace(s, gyro_z_radps=s.gyro_z_radps + size)
-            elif kind != "gyro" and isinstance(s, GnssFix) and s.fix_ok and s.t_us >= onset_us:
+            if kind in IMU_ATTACKS and isinstance(s, ImuSample) and s.t_us >= onset_us:
+                s = dataclasses.replace(s, gyro_z_radps=s.gyro_z_radps + size) if kind == "gyro" else \
+                    dataclasses.replace(s, acc_x_mps2=s.acc_x_mps2 + size)
+            elif kind not in IMU_ATTACKS and isinstance(s, GnssFix) and s.fix_ok and s.t_us >= onset_us:
                 s = north(s, size if kind == "step" else size * (s.t_us - onset_us) / 1e6)
             yield s
     return inject
+
+
+IMU_ATTACKS = ("gyro", "accel")
 
 
 def caught(alarms: list[dict], onset_us: int, window_s: float, any_sensor: bool = False) -> float | None:
@@ -147,7 +154,7 @@ def one(job: tuple[str, str | None, tuple[str, ...], tuple[str, ...]]) -> dict:
         for at in ONSETS:
             onset = span.fixes[int(at * (len(span.fixes) - 1))]
             hit = replay(path, cfg, inject=attack(kind, float(size), onset))
-            imu = kind == "gyro"
+            imu = kind in IMU_ATTACKS
             runs.append({"onset_us": onset, "delay_s": caught(hit["alarms"], onset, WINDOW_S[kind], imu),
                          "by_chance_s": caught(r["alarms"], onset, WINDOW_S[kind], imu)})
         out["attacks"][spec] = runs
@@ -161,23 +168,24 @@ def attack_spec(text: str) -> str:
     except ValueError:
         ok = False
     if not ok:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected step:METRES, ramp:METRES_PER_S or gyro:RAD_PER_S, "
-                                         "a positive number")
+        raise argparse.ArgumentTypeError(f"{text!r}: expected step:METRES, ramp:METRES_PER_S, gyro:RAD_PER_S or "
+                                         "accel:METRES_PER_S2, a positive number")
     return text
 
 
 def attack_lines(results: list[dict], attacks: list[str]) -> list[str]:
     """A line per attack: how often and how fast it was caught over every log and onset."""
     lines = [f"attacks written into each flight from its fix at {', '.join(f'{a:.0%}' for a in ONSETS)} "
-             "of them (into the fixes north, the velocity untouched; into the gyro's z axis):"]
+             "of them (into the fixes north, the velocity untouched; into the gyro's z axis; into the "
+             "accelerometer's x axis):"]
     for spec in attacks:
         runs = [run for r in results if "error" not in r for run in r["attacks"][spec]]
         delays = sorted(run["delay_s"] for run in runs if run["delay_s"] is not None)
         chance = sum(run["by_chance_s"] is not None for run in runs)
         kind, size = spec.split(":")
         what = {"step": f"step {float(size):g} m", "ramp": f"ramp {float(size):g} m/s",
-                "gyro": f"gyro bias {float(size):g} rad/s"}[kind]
-        which = "any" if kind == "gyro" else "a GNSS"
+                "gyro": f"gyro bias {float(size):g} rad/s", "accel": f"accelerometer bias {float(size):g} m/s2"}[kind]
+        which = "any" if kind in IMU_ATTACKS else "a GNSS"
         line = f"  {what}: caught within {WINDOW_S[kind]:g} s in {len(delays)} of {len(runs)} runs " \
                f"({which} alarm in the same window without the attack: {chance})"
         if delays:
@@ -196,7 +204,7 @@ def main(argv=None) -> int:
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help="a config key changed")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--json", help="write every log's result here")
-    ap.add_argument("--attack", action="append", default=[], type=attack_spec, metavar="step:M|ramp:V|gyro:W",
+    ap.add_argument("--attack", action="append", default=[], type=attack_spec, metavar="step:M|ramp:V|gyro:W|accel:A",
                     help="also run each log with this attack written into it (repeatable)")
     args = ap.parse_args(argv)
     logs: list[str] = []

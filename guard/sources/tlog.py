@@ -45,9 +45,13 @@ class TlogReader(LogSource):
             self._file = open(path, "rb")
         except OSError as e:
             raise SourceError(f"{path}: cannot open: {e.strerror}") from None
-        self.size = os.fstat(self._file.fileno()).st_size
+        try:
+            self.size = os.fstat(self._file.fileno()).st_size
+            first = int.from_bytes(self._file.read(8), "big") if self.size >= 8 else 0
+        except OSError as e:
+            self._file.close()
+            raise SourceError(f"{path}: cannot read: {e.strerror}") from None
         self.position = 0
-        first = int.from_bytes(self._file.read(8), "big") if self.size >= 8 else 0
         # the day it was recorded, from the first frame's time prefix (None if the log starts with garbage)
         self.date = (datetime.datetime.fromtimestamp(first / 1e6, datetime.timezone.utc).date()
                      if T_MIN_US <= first <= T_MAX_US else None)

@@ -179,14 +179,16 @@ def test_only_the_link_guard_reads_from_asks_the_autopilot_for_streams():
     from guard.config import LinkConfig
     from guard.core.monitor import MonitorConfig
     from guard.sources.link import MavlinkLink
-    data = MavlinkLink("udpin:127.0.0.1:0", LinkConfig(), MonitorConfig().min_imu_hz)
-    send_only = MavlinkLink("udpin:127.0.0.1:0", LinkConfig())
+    links = []
     try:
+        links.append(MavlinkLink("udpin:127.0.0.1:0", LinkConfig(), MonitorConfig().min_imu_hz))
+        links.append(MavlinkLink("udpin:127.0.0.1:0", LinkConfig()))
+        data, send_only = links
         assert data.rates is not None and data.rates.enough_hz == MonitorConfig().min_imu_hz
         assert send_only.rates is None
     finally:
-        data.close()
-        send_only.close()
+        for link in links:
+            link.close()
 
 
 def test_a_replay_says_how_far_the_estimate_stood_from_the_fixes_and_what_it_skipped(shared, tmp_path, capsys):

@@ -441,6 +441,20 @@ def test_unknown_scenario_lists_known_names():
         assert name in message
 
 
+def test_the_wandering_compass_false_alarms_the_defaults_and_without_its_wander_does_not(tmp_path):
+    """The shipped scenario `wandering_compass` is the README's example of a real copter's compass
+    (an error of 1.5 degrees correlated over 0.1 s): guard's defaults, which model the compass's error
+    as white, alarm on it, first on the magnetometer; the same drive without the wander is quiet."""
+    sc = scn.load("wandering_compass")
+    runs = {}
+    for wander in (sc.noise.mag_wander_deg, 0.0):
+        tlog = tmp_path / f"wander-{wander}.tlog"
+        run(dataclasses.replace(sc, noise=dataclasses.replace(sc.noise, mag_wander_deg=wander)), 1, tlog=str(tlog))
+        runs[wander] = replay(str(tlog))["alarms"]
+    assert runs[sc.noise.mag_wander_deg] and runs[sc.noise.mag_wander_deg][0]["sensor"] == "mag"
+    assert runs[0.0] == []
+
+
 def test_every_shipped_scenario_loads():
     for name in scn.names():
         assert scn.load(name).name == name

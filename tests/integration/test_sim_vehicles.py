@@ -312,7 +312,7 @@ def test_rates_and_attack_index(imu_hz, gnss_hz):
 @pytest.mark.parametrize("key, value", [
     ("mag_offset_deg", 30.5), ("mag_offset_deg", -31.0), ("accel_scale", 0.25), ("accel_scale", -0.21),
     ("gyro_scale", 0.3), ("gyro_scale", -1.0), ("imu_yaw_mount_deg", 45.0), ("imu_yaw_mount_deg", -30.01),
-    ("mag_wander_deg", -1.0), ("mag_wander_tau_s", -2.0),
+    ("mag_wander_deg", -1.0), ("mag_wander_deg", 31.0), ("mag_wander_tau_s", -2.0),
     ("mag_offset_deg", "5"), ("accel_scale", True), ("gnss_vel_acc_reported", 0), ("gnss_h_acc_reported", "no"),
 ])
 def test_bad_value_is_named(key, value):

@@ -38,18 +38,20 @@ def test_a_bad_key_or_folder_is_named_and_nothing_runs(tmp_path):
 
 def test_an_attack_written_into_real_fixes_is_caught_and_measured(shared, tmp_path):
     """--attack: each log run again with a 10 m step written into its own fixes at 30, 50 and 70 % of
-    them, and with a 0.05 rad/s bias written into its yaw gyro; on ArduPilot's clean SITL flights every
-    step is caught within a second and every bias within 10 s, and the same windows hold no alarm
-    without them. A size that is not a number is refused, named."""
+    them, with a 0.05 rad/s bias written into its yaw gyro and with a 0.5 m/s^2 one into its forward
+    accelerometer; on ArduPilot's clean SITL flights every step is caught within a second and every
+    bias within 10 s, and the same windows hold no alarm without them. A size that is not a number is refused, named."""
     folder = shared / "data" / "ardupilot-sitl"
     if not folder.is_dir():
         pytest.skip(f"{folder} is not here (the shared data folder sits beside the project)")
-    got = tool(folder, "--attack", "step:10", "--attack", "gyro:0.05", "--json", tmp_path / "out.json")
+    got = tool(folder, "--attack", "step:10", "--attack", "gyro:0.05", "--attack", "accel:0.5",
+               "--json", tmp_path / "out.json")
     assert got.returncode == 0, got.stderr
     line, = [x for x in got.stdout.splitlines() if x.strip().startswith("step 10 m:")]
     assert "caught within 5 s in 6 of 6 runs" in line and "without the attack: 0)" in line, line
-    line, = [x for x in got.stdout.splitlines() if x.strip().startswith("gyro bias 0.05 rad/s:")]
-    assert "caught within 10 s in 6 of 6 runs" in line and "without the attack: 0)" in line, line
+    for what in ("gyro bias 0.05 rad/s:", "accelerometer bias 0.5 m/s2:"):
+        line, = [x for x in got.stdout.splitlines() if x.strip().startswith(what)]
+        assert "caught within 10 s in 6 of 6 runs" in line and "without the attack: 0)" in line, line
     import json
     runs = [run for r in json.loads((tmp_path / "out.json").read_text()) for run in r["attacks"]["step:10"]]
     assert len(runs) == 6 and all(run["delay_s"] is not None and run["delay_s"] < 1.0 for run in runs), runs
