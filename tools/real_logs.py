@@ -66,6 +66,7 @@ def config_of(path: str | None, sets: tuple[str, ...]):
 
 ONSETS = (0.3, 0.5, 0.7)        # at which share of a log's fixes an attack starts, one run each
 WINDOW_S = {"step": 5.0, "ramp": 30.0, "gyro": 10.0, "accel": 10.0}   # an alarm this long after the onset is the attack caught
+IMU_ATTACKS = ("gyro", "accel")  # written into the IMU, caught by an alarm on any sensor
 RECEIVER = {"gnss_pos", "gnss_vel"}
 
 
@@ -122,11 +123,9 @@ def attack(kind: str, size: float, onset_us: int):
     return inject
 
 
-IMU_ATTACKS = ("gyro", "accel")
-
-
 def caught(alarms: list[dict], onset_us: int, window_s: float, any_sensor: bool = False) -> float | None:
-    """The delay (s) of the first GNSS alarm (any sensor's) within window_s of the onset; None: none."""
+    """The delay (s) of the first GNSS alarm (with any_sensor, of any sensor) within window_s of the
+    onset; None: none."""
     for a in alarms:
         if (any_sensor or a["sensor"] in RECEIVER) and onset_us <= a["time_usec"] <= onset_us + window_s * 1e6:
             return (a["time_usec"] - onset_us) / 1e6
@@ -150,11 +149,10 @@ def one(job: tuple[str, str | None, tuple[str, ...], tuple[str, ...]]) -> dict:
            "receiver_jump_m": round(span.jump, 2)}
     for spec in attacks:
         kind, size = spec.split(":")
-        runs = []
+        runs, imu = [], kind in IMU_ATTACKS
         for at in ONSETS:
             onset = span.fixes[int(at * (len(span.fixes) - 1))]
             hit = replay(path, cfg, inject=attack(kind, float(size), onset))
-            imu = kind in IMU_ATTACKS
             runs.append({"onset_us": onset, "delay_s": caught(hit["alarms"], onset, WINDOW_S[kind], imu),
                          "by_chance_s": caught(r["alarms"], onset, WINDOW_S[kind], imu)})
         out["attacks"][spec] = runs
