@@ -7,7 +7,8 @@ measured on real vehicles it was never tuned on.
     python tools/real_logs.py ../shared/data/real LOGS_DIR ...          # the defaults
     python tools/real_logs.py LOGS_DIR --set monitor.max_wander_factor=1   # a config key changed
     python tools/real_logs.py LOGS_DIR --config my-vehicle.toml --json out/real.json
-    python tools/real_logs.py LOGS_DIR --attack step:2 --attack step:10 --attack ramp:0.3 --attack gyro:0.05 --attack accel:0.5
+    python tools/real_logs.py LOGS_DIR --attack step:2 --attack step:10 --attack ramp:0.3
+    python tools/real_logs.py LOGS_DIR --attack gyro:0.05 --attack accel:0.5
 
 `--attack` writes an attack into each flight's own fixes, from its fix at 30, 50 and 70 % of them
 (each a run of its own), and says how often and how fast it was caught: a GNSS alarm within
@@ -65,7 +66,8 @@ def config_of(path: str | None, sets: tuple[str, ...]):
 
 
 ONSETS = (0.3, 0.5, 0.7)        # at which share of a log's fixes an attack starts, one run each
-WINDOW_S = {"step": 5.0, "ramp": 30.0, "gyro": 10.0, "accel": 10.0}   # an alarm this long after the onset is the attack caught
+# an alarm this long after the onset is the attack caught
+WINDOW_S = {"step": 5.0, "ramp": 30.0, "gyro": 10.0, "accel": 10.0}
 IMU_ATTACKS = ("gyro", "accel")  # written into the IMU, caught by an alarm on any sensor
 RECEIVER = {"gnss_pos", "gnss_vel"}
 

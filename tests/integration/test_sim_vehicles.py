@@ -36,7 +36,8 @@ BASE = {"name": "vehicles", "duration_s": 30.0, "start": {"heading_deg": 90.0},
 # no IMU noise or bias: readings are the true values (and the knobs' effect) to the message's integer
 NOISELESS = {"accel_white_mps2": 0.0, "accel_bias_mps2": 0.0, "gyro_white_radps": 0.0, "gyro_bias_radps": 0.0,
              "mag_white_gauss": 0.0}
-NEW_KEYS = {"mag_offset_deg": 0.0, "mag_wander_deg": 0.0, "mag_wander_tau_s": 3.0, "accel_scale": 0.0, "gyro_scale": 0.0, "imu_yaw_mount_deg": 0.0,
+NEW_KEYS = {"mag_offset_deg": 0.0, "mag_wander_deg": 0.0, "mag_wander_tau_s": 3.0, "accel_scale": 0.0,
+            "gyro_scale": 0.0, "imu_yaw_mount_deg": 0.0,
             "gnss_h_acc_reported": True, "gnss_vel_acc_reported": True}
 
 
