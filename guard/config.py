@@ -64,6 +64,9 @@ class Config:
     source_text: str = ""                   # the TOML as read, stored in the MCAP log
 
 
+SIGNED = {"mag_offset_rad"}     # keys whose sign means a direction (a compass off east or west): any finite number
+
+
 def _typed(cls, table: dict, where: str):
     """Build dataclass `cls` from `table`, checking each key against its default's type."""
     if not isinstance(table, dict):
@@ -91,7 +94,9 @@ def _typed(cls, table: dict, where: str):
                 raise ConfigError(f"{name}: expected a number, got {value!r}")
             if isinstance(default, int) and not isinstance(default, bool) and not float(value).is_integer():
                 raise ConfigError(f"{name}: expected a whole number, got {value!r}")
-            if not math.isfinite(value) or value < 0:
+            if not math.isfinite(value):
+                raise ConfigError(f"{name}: must be a finite number, got {value!r}")
+            if value < 0 and key not in SIGNED:
                 raise ConfigError(f"{name}: must be a finite number >= 0, got {value!r}")
             value = type(default)(value)
         elif isinstance(default, tuple):

@@ -37,6 +37,16 @@ def test_guard_config_prints_every_key_and_reads_back(tmp_path, capsys):
     assert dump(cfg) == dump(Config(link=cfg.link, can=expected.can, log=expected.log, monitor=expected.monitor))
 
 
+def test_a_compass_offset_west_is_read_and_a_negative_noise_refused_by_its_key(tmp_path):
+    # guard tune writes the offset it learnt, negative for a compass that reads west of the heading
+    path = tmp_path / "vehicle.toml"
+    path.write_text("[filter]\nmag_offset_rad = -0.07\n")
+    assert load(str(path)).monitor.filter.mag_offset_rad == -0.07
+    path.write_text("[filter]\ngnss_vel_sigma_mps = -0.1\n")
+    with pytest.raises(ConfigError, match=r"filter\.gnss_vel_sigma_mps: must be a finite number >= 0"):
+        load(str(path))
+
+
 def test_verbose_goes_before_or_after_the_command(tmp_path, capsys):
     assert main(["config", "-v"]) == 0 and main(["-v", "config"]) == 0
 
