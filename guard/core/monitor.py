@@ -329,7 +329,7 @@ class Monitor:
         events += self._compass(s.t_us, mag is not None)
         aside = self.inertial and self.ekf is not None and self._blow(s, events)
         self.imu_aid.noise.add(s.t_us, ax, ay, rate, None if mag is None else heading(*mag, self.declination),
-                               learn=self.judge.calm and not aside)
+                               learn=not aside, calm=self.judge.calm)
         if self.inertial is False:
             self.skipped["imu_no_compass" if self.compass.absent else "imu_too_slow"] += 1
             return events

@@ -18,7 +18,7 @@ B_H, B_Z = 0.2, 0.4                          # earth's field, horizontal and dow
 
 def drive(duration_s, speed=5.0, yaw=0.0, seed=0, gnss_offset=None, fix_ok=None, gnss_every=GNSS_EVERY,
           vel_offset=None, with_vel=True, gnss_lag_us=0, mag=None, gyro_bias=None, mag_offset_deg=0.0,
-          vel_noise=0.03, vel_acc=0.1, h_acc=0.5):
+          vel_noise=0.03, vel_acc=0.1, h_acc=0.5, vibration=None, accel_bias=None):
     """A level vehicle on a straight line at constant speed; yaw is ENU (0 = east).
 
     The IMU reads -g on z, the earth's field rotated into the body (FRD): a compass heading chi gives
@@ -29,7 +29,8 @@ def drive(duration_s, speed=5.0, yaw=0.0, seed=0, gnss_offset=None, fix_ok=None,
     magnetometer out; gyro_bias(t) adds to the yaw rate. A fix every gnss_every IMU samples (50 Hz).
     mag_offset_deg turns the compass that far (east positive: it reads a heading that much larger);
     vel_noise is the GNSS velocity's noise and vel_acc, h_acc what the receiver reports (None: nothing).
-    Small seeded noise on everything.
+    vibration(t) is the sigma of a further white noise on the accelerometers (motors spinning),
+    accel_bias(t) a bias added to the forward one. Small seeded noise on everything.
     """
     rng = np.random.default_rng(seed)
     chi = math.pi / 2 - yaw
@@ -54,6 +55,10 @@ def drive(duration_s, speed=5.0, yaw=0.0, seed=0, gnss_offset=None, fix_ok=None,
             out.append(pending.pop(0)[1])
         c = chi + math.radians(mag_offset_deg) + rng.normal(0.0, 0.005)
         a = rng.normal(0.0, 0.03, 3)
+        if vibration is not None and vibration(t) > 0.0:
+            a = a + rng.normal(0.0, vibration(t), 3)
+        if accel_bias is not None:
+            a[0] += accel_bias(t)
         w = rng.normal(0.0, 0.001, 3)
         m = (B_H * math.cos(c), -B_H * math.sin(c), B_Z) if mag is None or mag(t) else (None, None, None)
         out.append(ImuSample(t_us, a[0], a[1], -G + a[2], w[0], w[1], w[2] - (gyro_bias(t) if gyro_bias else 0.0),

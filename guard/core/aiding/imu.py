@@ -11,9 +11,10 @@ is fused at the last one's time, which keeps a 250 Hz IMU affordable on a compan
 R is the vehicle's own: the noise of each reading (vibration, on a vehicle with motors: 0.25 to
 0.66 m/s^2 on the accelerometers of two real copters logged at 25 Hz, against the simulator's 0.05)
 is measured from the differences of consecutive samples (`ImuNoise`; the heading's less what the gyro
-turned in between), over NOISE_TAU_S, and used where it exceeds the configured sigma (the floor), up
-to NOISE_CAP times it. A bias, a ramp or a slow drift leaves consecutive samples alike: what an attack
-of that kind does cannot loosen the test that is to find it.
+turned in between), over NOISE_TAU_S and over the last NOISE_SHORT samples (motors spinning up), and
+used where it exceeds the configured sigma (the floor), up to NOISE_CAP times it. A bias, a ramp or a
+slow drift leaves consecutive samples alike: what an attack of that kind does cannot loosen the test
+that is to find it.
 """
 
 from __future__ import annotations
@@ -89,32 +90,62 @@ def heading(mx: float, my: float, declination: float) -> float:
 NOISE_TAU_S = 2.0       # s, the memory of the measured noise
 NOISE_CAP = 10.0        # the measured noise counts up to this many times its floor
 NOISE_GAP_S = 0.5       # consecutive samples further apart than this are not compared
+NOISE_SHORT = 5         # ... and the median of the last this many second differences, at once
 
 
 class ImuNoise:
     """The variance of each IMU reading (ax, ay, yaw rate, heading), from the squared differences of
-    consecutive samples: E[(x_k - x_k-1)^2] / 2 = sigma^2 for white noise on a slow signal."""
+    consecutive samples: E[(x_k - x_k-1)^2] / 2 = sigma^2 for white noise on a slow signal.
+
+    Two memories: NOISE_TAU_S, learnt while every test is calm; and the median of the last NOISE_SHORT
+    second differences, always. A copter's motors spinning up at take-off bring a vibration ten times the
+    one before within a tenth of a second, which the slow memory takes seconds to see: the filter,
+    still told the quiet noise, read the first samples of it as an accelerometer attack (the lift-off
+    alarms of real flights). Every sample differs from the last in a vibration, so the median sees it
+    after NOISE_SHORT / 2 of them; a bias or a step is two second differences, a ramp or a drift one,
+    and the median of a few does not move for them: what an attack of those kinds does loosens neither."""
 
     def __init__(self):
         self.var = [0.0, 0.0, 0.0, 0.0]
+        self.short: list[deque[float]] = [deque(maxlen=NOISE_SHORT) for _ in range(4)]
+        self._d: list[float | None] = [None] * 4        # each reading's last first difference
         self._last: tuple | None = None         # (t_us, ax, ay, rate, heading or None)
 
-    def add(self, t_us: int, ax: float, ay: float, rate: float, theta: float | None, learn: bool = True) -> None:
-        """One sample; `learn` False: remembered for the next difference, not learnt from."""
+    def add(self, t_us: int, ax: float, ay: float, rate: float, theta: float | None, learn: bool = True,
+            calm: bool = True) -> None:
+        """One sample; `learn` False: remembered for the next difference, not learnt from (a blow);
+        `calm` False: learnt by the short memory only (a test is near its threshold)."""
         last, self._last = self._last, (t_us, ax, ay, rate, theta)
         if not learn or last is None or not 0 < t_us - last[0] <= NOISE_GAP_S * 1e6:
+            self._d = [None] * 4
             return
         dt = (t_us - last[0]) / 1e6
         a = min(1.0, dt / NOISE_TAU_S)
         d = [ax - last[1], ay - last[2], rate - last[3],
              None if theta is None or last[4] is None else math.remainder(theta - last[4] - rate * dt, math.tau)]
         for i, di in enumerate(d):
-            if di is not None:
+            if di is None:
+                self._d[i] = None
+                continue
+            if calm:
                 self.var[i] += a * (0.5 * di * di - self.var[i])
+            # the short memory takes the second differences, E[(d_k - d_k-1)^2] / 6 = sigma^2 for white
+            # noise: a manoeuvre's signal, locally a line, has none (its first differences would be
+            # taken for noise in a hard-flown copter's turns)
+            if self._d[i] is not None:
+                dd = di - self._d[i]
+                self.short[i].append(dd * dd / 6.0)
+            self._d[i] = di
 
     def sigmas(self, floors: tuple[float, float, float, float], n: int) -> list[float]:
-        """The noise of a mean of n samples: each reading's, within [floor, NOISE_CAP * floor]."""
-        return [min(max(f, math.sqrt(v / n)), NOISE_CAP * f) for f, v in zip(floors, self.var)]
+        """The noise of a mean of n samples: each reading's (the larger memory's), within [floor,
+        NOISE_CAP * floor]."""
+        out = []
+        for f, v, q in zip(floors, self.var, self.short):
+            if len(q) == NOISE_SHORT:
+                v = max(v, sorted(q)[NOISE_SHORT // 2])
+            out.append(min(max(f, math.sqrt(v / n)), NOISE_CAP * f))
+        return out
 
 
 class StreamRate:
