@@ -96,6 +96,8 @@ class Noise:
     mag_offset_deg: float = 0.0           # compass heading error, east positive: heading read = true + this
     mag_wander_deg: float = 0.0           # and a heading error that comes and goes (a multicopter's motors' and
     mag_wander_tau_s: float = 3.0         # wiring's field): first-order Gauss-Markov, its sigma and correlation time
+    mag_iron_x: float = 0.0               # a hard iron: a field fixed to the body, forward and right, as a fraction
+    mag_iron_y: float = 0.0               # of the horizontal field (0.35: a heading up to 20 degrees off, by heading)
     accel_scale: float = 0.0              # scale-factor error: 0.02 reads 2 % high (applied before bias, noise)
     gyro_scale: float = 0.0               # likewise for the rate
     imu_yaw_mount_deg: float = 0.0        # accelerometer and gyro (not the compass) mounted yawed by this
@@ -105,7 +107,8 @@ class Noise:
 
 MAX_WANDER_DEG = 30.0       # the compass's wander (1 sigma): as far as its fixed offset may go
 # noise keys that may be negative, with their limits (|value| <= limit); the others must be >= 0
-SIGNED_NOISE = {"mag_offset_deg": 30.0, "accel_scale": 0.2, "gyro_scale": 0.2, "imu_yaw_mount_deg": 30.0}
+SIGNED_NOISE = {"mag_offset_deg": 30.0, "accel_scale": 0.2, "gyro_scale": 0.2, "imu_yaw_mount_deg": 30.0,
+                "mag_iron_x": 0.6, "mag_iron_y": 0.6}
 
 
 @dataclass(frozen=True)

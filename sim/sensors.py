@@ -7,7 +7,8 @@ and a constant bias. Magnetometer: the World Magnetic Model's field at the start
 body frame by the vehicle's heading, plus white noise, and where `mag_wander_deg` is set a heading
 error that comes and goes, first-order Gauss-Markov over `mag_wander_tau_s` (on a multicopter the
 motors' and the wiring's field turn a real compass by degrees over seconds, an error no white noise
-model covers: the shipped scenario `wandering_compass`).
+model covers: the shipped scenario `wandering_compass`), and where `mag_iron_x`, `mag_iron_y` are set a
+hard iron, a field fixed to the body that turns the heading by an amount that depends on it.
 
 A vehicle's own sensors (guard_sim.scenario.Noise): the IMU may be mounted yawed (`imu_yaw_mount_deg`) and
 read high or low (`accel_scale`, `gyro_scale`); the compass may be yawed (`mag_offset_deg`). The
@@ -135,6 +136,8 @@ class Sensors:
                 0.0, math.radians(n.mag_wander_deg))
         self.last_imu_t = t_s
         mag = yawed(mag, math.radians(n.mag_offset_deg) + self.wander) + self.rng_mag.normal(0, n.mag_white_gauss, 3)
+        if n.mag_iron_x or n.mag_iron_y:        # a field fixed to the body, a fraction of the horizontal one
+            mag[:2] += math.hypot(fn, fe) * np.array([n.mag_iron_x, n.mag_iron_y])
         for i, axis in enumerate("xyz"):
             acc[i] += self._offset(t_s, "accel", axis)
             gyro[i] += self._offset(t_s, "gyro", axis)

@@ -36,7 +36,8 @@ BASE = {"name": "vehicles", "duration_s": 30.0, "start": {"heading_deg": 90.0},
 # no IMU noise or bias: readings are the true values (and the knobs' effect) to the message's integer
 NOISELESS = {"accel_white_mps2": 0.0, "accel_bias_mps2": 0.0, "gyro_white_radps": 0.0, "gyro_bias_radps": 0.0,
              "mag_white_gauss": 0.0}
-NEW_KEYS = {"mag_offset_deg": 0.0, "mag_wander_deg": 0.0, "mag_wander_tau_s": 3.0, "accel_scale": 0.0,
+NEW_KEYS = {"mag_offset_deg": 0.0, "mag_wander_deg": 0.0, "mag_wander_tau_s": 3.0, "mag_iron_x": 0.0,
+            "mag_iron_y": 0.0, "accel_scale": 0.0,
             "gyro_scale": 0.0, "imu_yaw_mount_deg": 0.0,
             "gnss_h_acc_reported": True, "gnss_vel_acc_reported": True}
 
@@ -96,6 +97,7 @@ def wrap_deg(x):
 @pytest.mark.parametrize("knob, value, expected", [
     ("mag_offset_deg", 5.0, {("RAW_IMU", "xmag"), ("RAW_IMU", "ymag")}),
     ("mag_wander_deg", 3.0, {("RAW_IMU", "xmag"), ("RAW_IMU", "ymag")}),
+    ("mag_iron_x", 0.2, {("RAW_IMU", "xmag")}),               # fixed to the body: forward only
     ("accel_scale", 0.1, {("RAW_IMU", "xacc"), ("RAW_IMU", "yacc"), ("RAW_IMU", "zacc")}),
     ("gyro_scale", 0.1, {("RAW_IMU", "zgyro")}),            # a level vehicle turns about z only
     ("imu_yaw_mount_deg", 10.0, {("RAW_IMU", "xacc"), ("RAW_IMU", "yacc")}),
@@ -165,6 +167,19 @@ def test_mag_wander_is_a_gauss_markov_heading_error(runs):
     assert 2.5 < np.sqrt(np.mean(e * e)) < 6.0
     corr = lambda lag: np.corrcoef(e[:-lag], e[lag:])[0, 1]      # noqa: E731
     assert corr(1) > 0.95 and abs(corr(250)) < 0.5             # IMU at 50 Hz: 20 ms and 5 s
+
+
+def test_a_hard_iron_turns_the_compass_by_its_deviation_curve(runs):
+    """mag_iron_x, mag_iron_y: a field fixed to the body, a fraction of the horizontal one (forward,
+    right), adds to the earth's; the compass's heading is then off by chi_m - chi = atan2(sin chi - d_y,
+    cos chi + d_x) - chi, which depends on the heading (up to asin |d|)."""
+    base, _ = runs(**NOISELESS)
+    other, _ = runs(**NOISELESS, mag_iron_x=0.3, mag_iron_y=-0.2)
+    chi = np.radians(compass_deg(base))
+    expected = np.degrees(np.arctan2(np.sin(chi) + 0.2, np.cos(chi) + 0.3) - chi)
+    diff = wrap_deg(compass_deg(other) - compass_deg(base))
+    assert np.abs(wrap_deg(diff - expected)).max() < 0.6
+    assert np.ptp(diff) > 30.0                                  # by heading: the loop turns it both ways
 
 
 def test_mag_offset_noiseless_is_a_rotation_of_the_field(runs):
@@ -314,6 +329,7 @@ def test_rates_and_attack_index(imu_hz, gnss_hz):
     ("mag_offset_deg", 30.5), ("mag_offset_deg", -31.0), ("accel_scale", 0.25), ("accel_scale", -0.21),
     ("gyro_scale", 0.3), ("gyro_scale", -1.0), ("imu_yaw_mount_deg", 45.0), ("imu_yaw_mount_deg", -30.01),
     ("mag_wander_deg", -1.0), ("mag_wander_deg", 31.0), ("mag_wander_tau_s", -2.0),
+    ("mag_iron_x", 0.61), ("mag_iron_y", -0.7),
     ("mag_offset_deg", "5"), ("accel_scale", True), ("gnss_vel_acc_reported", 0), ("gnss_h_acc_reported", "no"),
 ])
 def test_bad_value_is_named(key, value):
