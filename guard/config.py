@@ -130,6 +130,7 @@ def _check(cfg: Config, where: str) -> None:
         "filter.gnss_delay_s": (flt.gnss_delay_s > 1.0, "must be at most 1 s (receivers lag 0.05 to 0.25 s)"),
         "filter.gnss_latency_sigma_s": (not 0 <= flt.gnss_latency_sigma_s <= 1.0, "must be within 0..1 s"),
         "filter.mag_offset_per_turn_rad": (not 0 <= flt.mag_offset_per_turn_rad <= 0.5, "must be within 0..0.5 rad"),
+        "filter.mag_offset_rad": (abs(flt.mag_offset_rad) > math.pi, "must be within -pi..pi rad"),
         "monitor.vehicle": (cfg.monitor.vehicle not in ("auto", "ground", "air"),
                             "must be \"auto\", \"ground\" or \"air\""),
         # values that would switch detection off, or flood the disk

@@ -108,7 +108,7 @@ class Noise:
 MAX_WANDER_DEG = 30.0       # the compass's wander (1 sigma): as far as its fixed offset may go
 # noise keys that may be negative, with their limits (|value| <= limit); the others must be >= 0
 SIGNED_NOISE = {"mag_offset_deg": 30.0, "accel_scale": 0.2, "gyro_scale": 0.2, "imu_yaw_mount_deg": 30.0,
-                "mag_iron_x": 0.6, "mag_iron_y": 0.6}
+                "mag_iron_x": 0.5, "mag_iron_y": 0.5}
 
 
 @dataclass(frozen=True)

@@ -25,7 +25,7 @@ error (counting one independent reading per CORR_S: a compass's errors last seco
 deviation it makes, the compass's scatter about the fit with it and without it (d = 0), and how much
 of the circle the headings read cover. A log whose turns do not show the iron (its standard error
 over MAX_SIGMA, or its headings over less than MIN_COVER_DEG) says so. A log without a magnetometer,
-or without an IMU, is named and skipped.
+an IMU fast enough to integrate, or one that cannot be read, is named and skipped.
 """
 
 from __future__ import annotations
@@ -57,6 +57,7 @@ MAX_STEP = 0.1          # Gauss-Newton moves the iron at most this far per itera
 CORR_S = 2.0            # one independent reading per this long, in the standard error
 MAX_SIGMA = 0.05        # the iron is shown where its standard error is below this (3 degrees)
 MIN_FIELD = 0.2         # the field left once the iron is taken away: a fit that needs less has failed
+                        # (the simulator's irons, at most 0.5 on each axis, stay within it)
 GYRO_SCALE = 0.01       # the gyro's scale error, 1 sigma (a calibrated MEMS gyro's): a prior, not a free
                         # parameter, as over half a circle a deviation looks like a scale error
 MIN_COVER_DEG = 180.0   # the headings read must cover this much of the circle for the iron to be shown
@@ -132,7 +133,7 @@ class Fit:
 
     @property
     def shown(self) -> bool:
-        return self.sigma < MAX_SIGMA and self.covered_deg >= MIN_COVER_DEG
+        return self.sigma < MAX_SIGMA
 
 
 def fit(t, gamma, chi_m, stretch, iron: bool = True) -> tuple[np.ndarray, float, np.ndarray] | None:
@@ -183,6 +184,8 @@ def deviation_of(path: str) -> dict:
         replay(path, listeners=[h])
     except GuardError as e:
         return {"log": path, "error": str(e)}
+    except Exception as e:                  # noqa: BLE001 - one unreadable log is named, the others still run
+        return {"log": path, "error": f"{type(e).__name__}: {e}"}
     hz = 1e6 / float(np.median(h.intervals)) if h.intervals else 0.0
     if hz < MIN_IMU_HZ:
         return {"log": path, "error": f"its IMU at {hz:.1f} Hz, too slow to integrate the gyro"}
@@ -192,7 +195,8 @@ def deviation_of(path: str) -> dict:
                                       f"{MIN_STRETCH_S:g} s or more"}
     covered = np.unique(np.floor(np.degrees(np.remainder(a[2], 2 * np.pi)) / 10.0)).size * 10.0
     if covered < MIN_COVER_DEG:
-        return {"log": path, "error": f"its headings cover {covered:.0f} degrees, too few to show an iron"}
+        return {"log": path, "shown": False, "covered_deg": covered,
+                "why": f"its headings cover {covered:.0f} degrees, too few to show an iron"}
     with_iron, without = fit(*a), fit(*a, iron=False)
     if with_iron is None or without is None:
         return {"log": path, "error": "no iron under the field fits its compass"}
@@ -224,6 +228,9 @@ def main(argv=None) -> int:
             name = Path(r["log"]).name
             if "error" in r:
                 print(f"{name}: skipped: {r['error']}")
+                continue
+            if "why" in r:
+                print(f"{name}: not shown: {r['why']}")
                 continue
             what = (f"up to {r['max_deviation_deg']:.0f} degrees by heading" if r["shown"]
                     else "not shown by its turns")

@@ -42,6 +42,9 @@ def test_a_compass_offset_west_is_read_and_a_negative_noise_refused_by_its_key(t
     path = tmp_path / "vehicle.toml"
     path.write_text("[filter]\nmag_offset_rad = -0.07\n")
     assert load(str(path)).monitor.filter.mag_offset_rad == -0.07
+    path.write_text("[filter]\nmag_offset_rad = -4.0\n")
+    with pytest.raises(ConfigError, match=r"filter\.mag_offset_rad: must be within -pi\.\.pi"):
+        load(str(path))
     path.write_text("[filter]\ngnss_vel_sigma_mps = -0.1\n")
     with pytest.raises(ConfigError, match=r"filter\.gnss_vel_sigma_mps: must be a finite number >= 0"):
         load(str(path))

@@ -37,8 +37,7 @@ BASE = {"name": "vehicles", "duration_s": 30.0, "start": {"heading_deg": 90.0},
 NOISELESS = {"accel_white_mps2": 0.0, "accel_bias_mps2": 0.0, "gyro_white_radps": 0.0, "gyro_bias_radps": 0.0,
              "mag_white_gauss": 0.0}
 NEW_KEYS = {"mag_offset_deg": 0.0, "mag_wander_deg": 0.0, "mag_wander_tau_s": 3.0, "mag_iron_x": 0.0,
-            "mag_iron_y": 0.0, "accel_scale": 0.0,
-            "gyro_scale": 0.0, "imu_yaw_mount_deg": 0.0,
+            "mag_iron_y": 0.0, "accel_scale": 0.0, "gyro_scale": 0.0, "imu_yaw_mount_deg": 0.0,
             "gnss_h_acc_reported": True, "gnss_vel_acc_reported": True}
 
 
@@ -329,7 +328,7 @@ def test_rates_and_attack_index(imu_hz, gnss_hz):
     ("mag_offset_deg", 30.5), ("mag_offset_deg", -31.0), ("accel_scale", 0.25), ("accel_scale", -0.21),
     ("gyro_scale", 0.3), ("gyro_scale", -1.0), ("imu_yaw_mount_deg", 45.0), ("imu_yaw_mount_deg", -30.01),
     ("mag_wander_deg", -1.0), ("mag_wander_deg", 31.0), ("mag_wander_tau_s", -2.0),
-    ("mag_iron_x", 0.61), ("mag_iron_y", -0.7),
+    ("mag_iron_x", 0.51), ("mag_iron_y", -0.7),
     ("mag_offset_deg", "5"), ("accel_scale", True), ("gnss_vel_acc_reported", 0), ("gnss_h_acc_reported", "no"),
 ])
 def test_bad_value_is_named(key, value):

@@ -464,7 +464,7 @@ def test_a_compass_that_speaks_late_does_not_integrate_an_imu_too_slow():
 def test_motors_spinning_up_are_a_vibration_not_an_accelerometer_attack(vehicle, seed):
     """A copter's motors spin up: within a sample, its accelerometers' noise goes from 0.03 m/s^2 to
     1 m/s^2 (the lift-off alarms of real flights). The noise is measured at once, and nothing alarms
-    (on the code before, 2 of 3 such runs raised an accelerometer alarm within 0.3 s)."""
+    (on the code before, 3 of 4 such runs raised an accelerometer alarm within 0.4 s)."""
     samples = drive(60.0, seed=seed, vibration=lambda t: 1.0 if t >= 30.0 else 0.0)
     mon, events = run(samples, MonitorConfig(declination_deg=0.0, vehicle=vehicle))
     assert of(events, Alarm) == []
@@ -485,18 +485,28 @@ def test_an_accelerometer_bias_under_that_vibration_is_still_caught(vehicle, see
 
 def test_the_short_memory_sees_a_vibration_at_once_and_not_a_bias_step_or_a_ramp():
     """The IMU's measured noise (guard.core.aiding.imu.ImuNoise) while a test is near its threshold
-    (calm False: the slow memory learns nothing): white noise of 1 m/s^2 is seen within NOISE_SHORT
-    samples; a 2 m/s^2 step, or a ramp of 1 m/s^2 per second, leave the floor where it was."""
+    (calm False: the slow memory learns nothing), over 200 seeds: white noise of 1 m/s^2 is seen
+    within NOISE_SHORT + 1 samples (read low, at about two thirds, by design: a median of squares);
+    a 2 m/s^2 step, or a ramp of 1 m/s^2 per second, leave the floor where it was, and so does a jump
+    across a gap."""
     from guard.core.aiding.imu import NOISE_SHORT, ImuNoise
     floors = (0.15, 0.15, 0.01, 0.03)
-    rng = np.random.default_rng(7)
 
-    def fed(values):
+    def fed(values, gap_at=None):
         noise = ImuNoise()
         for k, a in enumerate(values):
-            noise.add(T0_US + 20_000 * k, a, 0.0, 0.0, None, calm=k < 50)
+            t = T0_US + 20_000 * k + (1_000_000 if gap_at is not None and k >= gap_at else 0)
+            noise.add(t, a, 0.0, 0.0, None, calm=k < 50)
         return noise.sigmas(floors, 1)[0]
-    quiet = list(rng.normal(0.0, 0.03, 50))
-    assert 0.5 < fed(quiet + list(rng.normal(0.0, 1.0, NOISE_SHORT))) <= 1.5
-    assert fed(quiet + [2.0] * 20) == 0.15
-    assert fed(quiet + [0.02 * k for k in range(1, 60)]) == 0.15
+    read, steps, ramps = [], [], []
+    for seed in range(200):
+        rng = np.random.default_rng(seed)
+        quiet = list(rng.normal(0.0, 0.03, 50))
+        read.append(fed(quiet + list(rng.normal(0.0, 1.0, NOISE_SHORT + 1))))
+        steps.append(fed(quiet + list(2.0 + rng.normal(0.0, 0.03, 20))))
+        ramps.append(fed(quiet + list(0.02 * np.arange(1, 60) + rng.normal(0.0, 0.03, 59))))
+    assert 0.5 < float(np.median(read)) < 1.0 and np.mean(np.array(read) > 0.3) > 0.85, np.percentile(read, [5, 50])
+    assert max(steps) == 0.15 and max(ramps) == 0.15, (max(steps), max(ramps))
+    # a gap: the jump across it is not a difference, first or second
+    rng = np.random.default_rng(1)
+    assert fed(list(rng.normal(0.0, 0.03, 50)) + list(3.0 + rng.normal(0.0, 0.03, 10)), gap_at=50) == 0.15

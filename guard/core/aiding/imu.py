@@ -98,12 +98,19 @@ class ImuNoise:
     consecutive samples: E[(x_k - x_k-1)^2] / 2 = sigma^2 for white noise on a slow signal.
 
     Two memories: NOISE_TAU_S, learnt while every test is calm; and the median of the last NOISE_SHORT
-    second differences, always. A copter's motors spinning up at take-off bring a vibration ten times the
-    one before within a tenth of a second, which the slow memory takes seconds to see: the filter,
+    second differences, always. A copter's motors spinning up at take-off bring a vibration ten times
+    the one before within a tenth of a second, which the slow memory takes seconds to see: the filter,
     still told the quiet noise, read the first samples of it as an accelerometer attack (the lift-off
     alarms of real flights). Every sample differs from the last in a vibration, so the median sees it
     after NOISE_SHORT / 2 of them; a bias or a step is two second differences, a ramp or a drift one,
-    and the median of a few does not move for them: what an attack of those kinds does loosens neither."""
+    and the median of five does not move for them. The median of a Gaussian's squares is 0.455 of their
+    mean: the short memory reads a vibration's sigma at about two thirds, on purpose, as it is there to
+    keep the first samples of a vibration from reading as an attack, and the slow memory measures it
+    once the tests are calm.
+
+    What this gives up: a vibration that sets in at once is no longer an alarm by itself, whether a
+    motor start or a jitter an attacker writes into the accelerometer, and a bias written with such a
+    jitter is caught as a bias under a vibration is, the test loosened up to NOISE_CAP (README)."""
 
     def __init__(self):
         self.var = [0.0, 0.0, 0.0, 0.0]
@@ -117,8 +124,8 @@ class ImuNoise:
         `calm` False: learnt by the short memory only (a test is near its threshold)."""
         last, self._last = self._last, (t_us, ax, ay, rate, theta)
         if not learn or last is None or not 0 < t_us - last[0] <= NOISE_GAP_S * 1e6:
-            self._d = [None] * 4
-            return
+            self._d = [None] * 4                # no difference across a gap or a blow (both memories
+            return                              # carry through it: the vehicle is the one it was)
         dt = (t_us - last[0]) / 1e6
         a = min(1.0, dt / NOISE_TAU_S)
         d = [ax - last[1], ay - last[2], rate - last[3],
