@@ -46,8 +46,8 @@ from guard.core.aiding.tilt import Tilt              # noqa: E402
 from guard.errors import GuardError                  # noqa: E402
 from guard.model.samples import Attitude, ImuSample  # noqa: E402
 from guard.runtime.replay import replay              # noqa: E402
+from real_logs import logs_in                        # noqa: E402 (beside this file)
 
-SUFFIXES = {".tlog", ".bin", ".ulg"}
 GAP_S = 0.5             # a stretch ends at a gap in the IMU this long (or a clock that goes back)
 MIN_STRETCH_S = 10.0    # shorter stretches are left out
 ROW_S = 0.05            # one compass reading kept per this long
@@ -212,15 +212,11 @@ def main(argv=None) -> int:
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--json", help="write every log's result here")
     args = ap.parse_args(argv)
-    logs: list[str] = []
-    for f in map(Path, args.logs):
-        if f.is_dir():
-            logs += sorted(str(p) for p in f.iterdir() if p.suffix.lower() in SUFFIXES)
-        elif f.exists():
-            logs.append(str(f))
-        else:
-            print(f"guard: {f}: no such file or folder", file=sys.stderr)
-            return 2
+    try:
+        logs = logs_in(args.logs)
+    except GuardError as e:
+        print(f"guard: {e}", file=sys.stderr)
+        return 2
     results = []
     with ProcessPoolExecutor(max(1, args.jobs)) as ex:
         for r in ex.map(deviation_of, logs):

@@ -52,6 +52,19 @@ import pymap3d                                       # noqa: E402
 SUFFIXES = {".tlog", ".bin", ".ulg"}
 
 
+def logs_in(paths: list[str]) -> list[str]:
+    """The logs (by their suffix) in each folder, and each single file; a GuardError names one missing."""
+    logs: list[str] = []
+    for f in map(Path, paths):
+        if f.is_dir():
+            logs += sorted(str(p) for p in f.iterdir() if p.suffix.lower() in SUFFIXES)
+        elif f.exists():
+            logs.append(str(f))
+        else:
+            raise GuardError(f"{f}: no such file or folder")
+    return logs
+
+
 def config_of(path: str | None, sets: tuple[str, ...]):
     """The config file's keys (none: the defaults), then each "section.key=TOML value" over them."""
     table: dict = read(path)[0] if path else {}
@@ -207,16 +220,8 @@ def main(argv=None) -> int:
     ap.add_argument("--attack", action="append", default=[], type=attack_spec, metavar="step:M|ramp:V|gyro:W|accel:A",
                     help="also run each log with this attack written into it (repeatable)")
     args = ap.parse_args(argv)
-    logs: list[str] = []
-    for f in map(Path, args.folders):
-        if f.is_dir():
-            logs += sorted(str(p) for p in f.iterdir() if p.suffix.lower() in SUFFIXES)
-        elif f.exists():
-            logs.append(str(f))
-        else:
-            print(f"guard: {f}: no such file or folder", file=sys.stderr)
-            return 2
     try:                                            # a bad key or file, said before any log runs
+        logs = logs_in(args.folders)
         config_of(args.config, tuple(args.set))
     except GuardError as e:
         print(f"guard: {e}", file=sys.stderr)
