@@ -1,7 +1,8 @@
 """The filter's recent past: what a rewind needs to undo a GNSS attack, and what a late receiver needs.
 
 - `epochs`: the filter before each GNSS epoch's fusion, over the last `rewind_s`;
-- `imu_log`: every IMU fusion since the oldest epoch kept (a rewind re-runs them, GNSS left out);
+- `imu_log`: every IMU fusion since the oldest epoch kept, each row with its sensor (a rewind re-runs
+  them, GNSS and the sensors judged attacked left out);
 - `states`: with a receiver latency, the state after each IMU fusion, back over the latency (a late
   fix is compared with the state of its own time).
 """
@@ -29,6 +30,7 @@ class ImuFusion(NamedTuple):
     H: np.ndarray
     R: np.ndarray
     angle_rows: tuple[int, ...]
+    sensors: tuple = ()         # the sensor of each row (None: a constraint, no sensor's)
 
 
 class Blow(NamedTuple):
@@ -117,11 +119,16 @@ class History:
         if self.delay_s > 0:
             self.states.append((fix_t_us - int(self.delay_s * 1e6), x_fix.copy()))
 
-    def rewind(self, ekf: NavEKF, epochs: int, now_us: int) -> None:
+    def rewind(self, ekf: NavEKF, epochs: int, now_us: int, leave_out: frozenset = frozenset()) -> None:
         """Undo the last `epochs` GNSS epochs: back to the filter before the attack's first sample was
-        fused, then the IMU fusions since, GNSS left out, and predict to now. The bias states come back
-        with the rest (not the oldest epoch's for every rewind: in the filter's first seconds those are
-        start-up guesses, and coasting on them keeps a GNSS that agrees again out)."""
+        fused, then the IMU fusions since, GNSS left out, and predict to now. The rows of the sensors in
+        `leave_out` (those judged attacked now) are left out too: a compass excluded by an alarm of its
+        own fed the filter a turn over its test's run before that alarm, and fed again it turns the
+        heading for the rest of the flight (a real copter whose compass was disturbed at take-off: its
+        heading after the first GNSS rewind 24 degrees from the autopilot's on average, 6 with the
+        compass's rows left out). The bias states come back with the rest (not the oldest epoch's for
+        every rewind: in the filter's first seconds those are start-up guesses, and coasting on them
+        keeps a GNSS that agrees again out)."""
         epochs = min(epochs, len(self.epochs))     # a run longer than the history: as far back as it goes
         if epochs < 1:
             return
@@ -136,7 +143,13 @@ class History:
             if isinstance(entry, Blow):
                 ekf.blow(entry.dv_var)
                 continue
-            _, z, H, R, angle = entry
+            _, z, H, R, angle, sensors = entry
+            if leave_out and any(s in leave_out for s in sensors):
+                rows = [i for i, s in enumerate(sensors) if s not in leave_out]
+                if not rows:
+                    continue
+                angle = tuple(rows.index(i) for i in angle if i in rows)
+                z, H, R = z[rows], H[rows], R[np.ix_(rows, rows)]
             r, S, PHT = ekf.innovation(z, H @ ekf.x, H, R, angle_rows=angle)
             ekf.fuse(r, S, H, R, PHT)
             if delayed:

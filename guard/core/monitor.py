@@ -170,7 +170,7 @@ class Monitor:
         Estimate, which wait for the next sample)."""
         events: list[Event] = []
         if self.judge.rewind_epochs:
-            self.history.rewind(self.ekf, self.judge.rewind_epochs, self.t_us)
+            self.history.rewind(self.ekf, self.judge.rewind_epochs, self.t_us, frozenset(self.health.excluded))
             self.judge.rewind_epochs = 0
             # what the rewind left may already be more than the other sensors can hold (GNSS alone, where
             # nothing else holds the position, or a long rewind in the air): then the alarm epoch's own
@@ -364,7 +364,8 @@ class Monitor:
                 keep.extend(range(i, j))
         if self.ground:
             keep.append(len(r) - 1)                # a constraint, not a sensor: never tested, always fused
-        self.history.imu_fused(s.t_us, fuse_rows(self.ekf, s.t_us, aid, r, S, PHT, keep, angle), self.ekf.x)
+        sensors = tuple(sensor for sensor, i, j in blocks for _ in range(i, j)) + (None,) * self.ground   # each row's
+        self.history.imu_fused(s.t_us, fuse_rows(self.ekf, s.t_us, aid, r, S, PHT, keep, angle, sensors), self.ekf.x)
         return events
 
     def _blow(self, s: ImuSample, events: list[Event]) -> bool:

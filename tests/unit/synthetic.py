@@ -18,7 +18,7 @@ B_H, B_Z = 0.2, 0.4                          # earth's field, horizontal and dow
 
 def drive(duration_s, speed=5.0, yaw=0.0, seed=0, gnss_offset=None, fix_ok=None, gnss_every=GNSS_EVERY,
           vel_offset=None, with_vel=True, gnss_lag_us=0, mag=None, gyro_bias=None, mag_offset_deg=0.0,
-          vel_noise=0.03, vel_acc=0.1, h_acc=0.5, vibration=None, accel_bias=None):
+          vel_noise=0.03, vel_acc=0.1, h_acc=0.5, vibration=None, accel_bias=None, mag_turn=None):
     """A level vehicle on a straight line at constant speed; yaw is ENU (0 = east).
 
     The IMU reads -g on z, the earth's field rotated into the body (FRD): a compass heading chi gives
@@ -30,7 +30,8 @@ def drive(duration_s, speed=5.0, yaw=0.0, seed=0, gnss_offset=None, fix_ok=None,
     mag_offset_deg turns the compass that far (east positive: it reads a heading that much larger);
     vel_noise is the GNSS velocity's noise and vel_acc, h_acc what the receiver reports (None: nothing).
     vibration(t) is the sigma of a further white noise on the accelerometers (motors spinning),
-    accel_bias(t) a bias added to the forward one. Small seeded noise on everything.
+    accel_bias(t) a bias added to the forward one, mag_turn(t) a further turn of the compass (degrees, as
+    mag_offset_deg: a disturbed or attacked one). Small seeded noise on everything.
     """
     rng = np.random.default_rng(seed)
     chi = math.pi / 2 - yaw
@@ -53,7 +54,7 @@ def drive(duration_s, speed=5.0, yaw=0.0, seed=0, gnss_offset=None, fix_ok=None,
             pending.append((t_us + gnss_lag_us, fix))
         while pending and pending[0][0] <= t_us:
             out.append(pending.pop(0)[1])
-        c = chi + math.radians(mag_offset_deg) + rng.normal(0.0, 0.005)
+        c = chi + math.radians(mag_offset_deg + (mag_turn(t) if mag_turn else 0.0)) + rng.normal(0.0, 0.005)
         a = rng.normal(0.0, 0.03, 3)
         if vibration is not None and vibration(t) > 0.0:
             a = a + rng.normal(0.0, vibration(t), 3)

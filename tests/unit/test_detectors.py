@@ -432,6 +432,23 @@ def test_core_rewind_at_a_slow_gnss_rate(gnss_every):
     assert east_error([e for e in of(events, Estimate) if not back or e.t_us < min(back)], 5.0, alarm.t_us) < 2.0
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_core_a_rewind_leaves_out_the_sensors_judged_attacked(seed):
+    """A rewind re-runs the IMU fusions since the attack's first epoch without the sensors excluded
+    now: a compass turned 4 degrees at 20 s alarms within a second, and what it fed the filter before
+    its alarm is not fed again by the GNSS velocity alarm's rewind at 40 s (which goes back 20 s). Fed
+    again, it turned the heading 2.7 to 4.2 degrees for the rest of the flight; left out, the heading
+    is the gyro's from before the compass turned."""
+    samples = drive(60.0, seed=seed, yaw=0.7, mag_turn=lambda t: 4.0 if t >= 20.0 else 0.0,
+                    vel_offset=lambda t: (1.0, 0.0) if t >= 40.0 else (0.0, 0.0))
+    mon, events = run(samples)
+    alarms = [(a.sensor, round((a.t_us - T0_US) / 1e6)) for a in of(events, Alarm)]
+    assert alarms[:2] == [("mag", 20), ("gnss_vel", 40)], alarms
+    after = [abs(math.degrees(math.remainder(e.yaw_rad - 0.7, math.tau))) for e in of(events, Estimate)
+             if T0_US + 40.5e6 <= e.t_us <= T0_US + 50e6]
+    assert after and max(after) < 1.5, max(after)
+
+
 def test_core_a_fix_stamped_before_the_last_imu_sample_is_rewound_exactly():
     """A receiver's fix arrives after IMU samples newer than its time stamp (a latency): the epoch
     kept for a rewind carries the state's time, and the rewind re-runs only the IMU fused after it,

@@ -286,14 +286,15 @@ class ImuAiding:
 
 
 def fuse_rows(ekf, t_us: int, aid: Aid, r: np.ndarray, S: np.ndarray, PHT: np.ndarray, keep: list[int],
-              angle: tuple[int, ...]) -> ImuFusion | None:
+              angle: tuple[int, ...], sensors: tuple = ()) -> ImuFusion | None:
     """Fuse the rows `keep` of a stacked measurement (those of the sensors in use); the fusion as the
     history keeps it, for a rewind (None: nothing fused)."""
     if len(keep) == len(r):
         ekf.fuse(r, S, aid.H, aid.R, PHT)
-        return ImuFusion(t_us, aid.z, aid.H, aid.R, angle)
+        return ImuFusion(t_us, aid.z, aid.H, aid.R, angle, sensors)
     if not keep:
         return None
     ix = np.ix_(keep, keep)
     ekf.fuse(r[keep], S[ix], aid.H[keep], aid.R[ix], PHT[:, keep])
-    return ImuFusion(t_us, aid.z[keep], aid.H[keep], aid.R[ix], angle if keep[0] == 0 else ())
+    return ImuFusion(t_us, aid.z[keep], aid.H[keep], aid.R[ix], angle if keep[0] == 0 else (),
+                     tuple(sensors[i] for i in keep) if sensors else ())
