@@ -12,6 +12,10 @@ residual against the filter's track and heading), and from them names the sensor
 - a GNSS velocity whose course agrees with the filter's heading but not with its track (the heading
   turned by the filter's own sideways velocity): the lateral accelerometer; on wheels only it pushes
   the track sideways.
+- a GNSS velocity alarm whose run began more than 2 WITNESS_S before it: the same turns over the
+  whole run (up to RUN_S), the gyro's with the filter's bias of the run's onset; the magnetometer
+  apart from the gyro and the course, they alike: the magnetometer. A compass turned slowly is
+  learnt as the gyro's bias and the heading follows it, until the course alarms the GNSS velocity.
 Without the course (in the air, standing still) a magnetometer alarm cannot be told from a gyro
 bias, and an along-track GNSS velocity alarm never can be told from an accelerometer bias (a
 coordinated spoof looks the same): the alarm names both.
@@ -34,6 +38,7 @@ WITNESS_S = 1.0        # s of course residuals weighed when a heading alarm is i
 WITNESS_Z = 2.0        # a witness disagrees with the filter when its mean residual is this many standard errors
 JUMP_Z2 = 9.0          # a jump tells better than a drift by this many heading variances (3 sigma)
 TURN_Z = (3.0, 2.0)    # two heading sources turned differently beyond the first, alike within the second (z)
+RUN_S = 20.0           # s: how far back a GNSS velocity alarm's run is weighed (the rewind's span)
 
 
 class HeadingWitness(NamedTuple):     # one magnetometer fusion
@@ -59,12 +64,16 @@ class Witnesses:
         self.min_speed = max(2.0 * freeze_speed_mps, 0.5)
         self.course: deque[CourseWitness] = deque()
         self.mag: deque[HeadingWitness] = deque()
+        self.course_run: deque[CourseWitness] = deque()     # the same over RUN_S: an alarm's whole run
+        self.mag_run: deque[HeadingWitness] = deque()
         self.last_vel = (np.zeros(2), np.eye(2))   # the latest GNSS velocity innovation and its S
         self.vel_sigma = f.gnss_vel_sigma_mps       # the latest fix's velocity noise (its R)
 
     def add_heading(self, w: HeadingWitness) -> None:
         self.mag.append(w)
         keep_since(self.mag, w.t_us - 2 * WITNESS_S * 1e6 + 1)
+        self.mag_run.append(w)
+        keep_since(self.mag_run, w.t_us - RUN_S * 1e6)
 
     def add_course(self, fix: GnssFix, x: np.ndarray, P_heading: float, ground: bool, vel_sigma: float) -> None:
         """The GNSS course against the filter's heading x (ground vehicles, at speed); vel_sigma the
@@ -73,6 +82,7 @@ class Witnesses:
         speed = math.hypot(fix.vel_e_mps, fix.vel_n_mps)
         if not ground or speed < self.min_speed:
             self.course.clear()            # standing still (or nearly): no course to speak of
+            self.course_run.clear()
             return
         course = math.atan2(fix.vel_n_mps, fix.vel_e_mps)
         r0 = math.remainder(course - x[TH], math.tau)          # against the heading alone
@@ -80,18 +90,24 @@ class Witnesses:
         self.course.append(CourseWitness(r, math.sqrt((vel_sigma / speed) ** 2 + P_heading),
                                          fix.t_us - int(self.f.gnss_delay_s * 1e6), course, speed, r0))
         keep_since(self.course, self.course[-1].t_us - 2 * WITNESS_S * 1e6 + 1, at=2)
+        self.course_run.append(self.course[-1])
+        keep_since(self.course_run, self.course[-1].t_us - RUN_S * 1e6, at=2)
 
     def fresh(self, t_us: int) -> bool:
         """A magnetometer heard within the last second."""
         return bool(self.mag) and t_us - self.mag[-1].t_us < 1e6
 
-    def isolate(self, sensor: Sensor, now_us: int, gyro_bias: float) -> tuple[Sensor, tuple[Sensor, ...], str | None]:
+    def isolate(self, sensor: Sensor, now_us: int, gyro_bias: float, run: tuple[int, float] | None = None
+                ) -> tuple[Sensor, tuple[Sensor, ...], str | None]:
         """Which sensor a heading alarm (magnetometer, GNSS velocity) names, what it cannot rule out,
         and the channel when it names another sensor. A GNSS velocity whose course is off the filter's
         track by TURN_Z[0] or more and nearer than that to its heading has been pushed sideways by the
         filter, not by the receiver: the lateral accelerometer (one boundary for both: "alike" within
         TURN_Z[1] missed 2 of the harness's 40 seeds of a sideways bias, on the course's noise alone,
-        while its spoofs' courses lay 4.8 or more from the heading at their alarms)."""
+        while its spoofs' courses lay 4.8 or more from the heading at their alarms). `run`: a GNSS
+        velocity alarm's run, (its onset, the filter's gyro bias then), see compass_turned."""
+        if sensor == Sensor.GNSS_VEL and run is not None and self.compass_turned(now_us, *run):
+            return Sensor.MAG, (), None
         turns = self.turns(now_us, gyro_bias)
         if turns is None or turns[1] is None:
             return sensor, AMBIGUOUS.get(sensor, ()), None
@@ -117,15 +133,33 @@ class Witnesses:
             return Sensor.ACCEL, (), "y"
         return sensor, (() if z >= WITNESS_Z else AMBIGUOUS.get(sensor, ())), None
 
-    def turns(self, now_us: int, gyro_bias: float) -> tuple[float, float | None, float | None] | None:
-        """How differently the heading sources turned over the last 2 WITNESS_S, as z-scores of the
-        slope of their differences: (gyro - magnetometer, gyro - course, magnetometer - course), the
-        last two None without the course; None without the magnetometer. The gyro's heading is its
-        yaw rate, less the filter's bias, integrated."""
-        if not self.mag or now_us - self.mag[-1].t_us > 1e6 or \
-                self.mag[-1].t_us - self.mag[0].t_us < 0.97 * WITNESS_S * 1e6:
+    def compass_turned(self, now_us: int, onset_us: int, gyro_bias: float) -> bool:
+        """Whether, over a GNSS velocity alarm's run, the magnetometer turned apart from the gyro and
+        the course, they alike: a compass turned slowly (0.5 degree/s) is learnt by the filter as the
+        gyro's bias, the heading following it, until the course it turns the GNSS velocity away from
+        alarms; over the last 2 WITNESS_S it turned too little to tell, over the run it is plain. The
+        gyro's heading uses the filter's bias at the run's onset, before it learnt the compass's turn."""
+        if now_us - onset_us <= 2 * WITNESS_S * 1e6:
+            return False                            # the last 2 WITNESS_S say as much (turns)
+        mag = [w for w in self.mag_run if w.t_us >= onset_us]
+        course = [c for c in self.course_run if c.t_us >= onset_us]
+        turns = self.turns(now_us, gyro_bias, mag, course)
+        if turns is None or turns[1] is None:
+            return False
+        z_gm, z_gc, z_mc = turns
+        return abs(z_gm) >= TURN_Z[0] and abs(z_mc) >= TURN_Z[1] > abs(z_gc)     # as `apart` in isolate
+
+    def turns(self, now_us: int, gyro_bias: float, mag=None, course=None
+              ) -> tuple[float, float | None, float | None] | None:
+        """How differently the heading sources turned over the last 2 WITNESS_S (or over the witnesses
+        given), as z-scores of the slope of their differences: (gyro - magnetometer, gyro - course,
+        magnetometer - course), the last two None without the course; None without the magnetometer.
+        The gyro's heading is its yaw rate, less the filter's bias, integrated."""
+        mag = self.mag if mag is None else mag
+        course = self.course if course is None else course
+        if not mag or now_us - mag[-1].t_us > 1e6 or mag[-1].t_us - mag[0].t_us < 0.97 * WITNESS_S * 1e6:
             return None                             # no magnetometer, for over a second, or not for long yet
-        t, heading, rate = np.array(self.mag)[:, :3].T
+        t, heading, rate = np.array(mag)[:, :3].T
         t0, t = t[0], (t - t[0]) / 1e6
         gyro = np.cumsum((rate - gyro_bias) * np.diff(t, prepend=0.0))
 
@@ -133,7 +167,7 @@ class Witnesses:
             d = tt - tt.mean()
             return float(d @ y) / float(d @ d), sigma / math.sqrt(float(d @ d))
         s_gm, e_gm = slope(t, gyro - np.unwrap(heading), self.f.heading_sigma_rad)
-        course = [c[2:5] for c in self.course if c.t_us >= t0]
+        course = [c[2:5] for c in course if c.t_us >= t0]
         if len(course) < 3 or course[-1][0] - course[0][0] < 0.85 * WITNESS_S * 1e6:
             return s_gm / e_gm, None, None
         tc, course, speed = np.array(course).T

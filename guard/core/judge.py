@@ -68,7 +68,7 @@ class Judge:
         events: list[Event] = []
         health, bw = self.health, ekf.x[BW]
         for i, offset in hits:
-            named, ambiguous, channel = self.witnesses.isolate(sensor, now_us, bw) \
+            named, ambiguous, channel = self.witnesses.isolate(sensor, now_us, bw, self._run(sensor)) \
                 if sensor in (Sensor.MAG, Sensor.GNSS_VEL) else (sensor, (), None)
             if named in health.excluded:
                 continue
@@ -93,6 +93,15 @@ class Judge:
                 health.accel_ref = float((oldest if oldest is not None else ekf.x)[BAY])
                 ekf.x[BAY] = health.accel_ref
         return events
+
+    def _run(self, sensor: Sensor) -> tuple[int, float] | None:
+        """A GNSS velocity alarm's run: the time of the epoch it began at (one epoch per fix, as far back
+        as the history goes) and the filter's gyro bias then."""
+        n, epochs = self.detector.run_length.get(sensor, 0), self.history.epochs
+        if sensor != Sensor.GNSS_VEL or n < 1 or not epochs:
+            return None
+        epoch = epochs[-min(n, len(epochs))]
+        return epoch.t_us, float(epoch.x[BW])
 
     def record_alarm(self, sensor: Sensor, t_us: int) -> bool:
         """Record an alarm on `sensor` at t_us (once per alarm: the judge's own and the freeze's), and
