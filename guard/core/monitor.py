@@ -34,7 +34,7 @@ from guard.core.aiding.compass import NO_COMPASS_S, CompassWatch
 from guard.core.aiding.gnss import START_H_ACC_M, START_HDOP, FreezeWatch, GnssAiding
 from guard.core.aiding.impact import BUDGET_S, HOLD_S, IMPACT_G, MEAN_S, WINDOW_S, Impact
 from guard.core.aiding.tilt import Tilt
-from guard.core.aiding.imu import Averager, ImuAiding, RateWatch, fuse_rows, heading, level
+from guard.core.aiding.imu import Averager, ImuAiding, RateWatch, fuse_rows, heading, level, row_sensors
 from guard.core.anchor import Learnt, diverged, initial_state
 from guard.core.detectors import DetectorConfig, make_detector
 from guard.core.ekf import BM, TH, VX, VY, FilterConfig, NavEKF
@@ -364,8 +364,8 @@ class Monitor:
                 keep.extend(range(i, j))
         if self.ground:
             keep.append(len(r) - 1)                # a constraint, not a sensor: never tested, always fused
-        sensors = tuple(sensor for sensor, i, j in blocks for _ in range(i, j)) + (None,) * self.ground   # each row's
-        self.history.imu_fused(s.t_us, fuse_rows(self.ekf, s.t_us, aid, r, S, PHT, keep, angle, sensors), self.ekf.x)
+        self.history.imu_fused(s.t_us, fuse_rows(self.ekf, s.t_us, aid, r, S, PHT, keep, angle,
+                                                 row_sensors(blocks, bool(self.ground))), self.ekf.x)
         return events
 
     def _blow(self, s: ImuSample, events: list[Event]) -> bool:

@@ -19,6 +19,7 @@ that is to find it.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections import deque
 
@@ -45,6 +46,12 @@ H_IMU_GROUND, H_IMU_NO_MAG_GROUND = np.vstack([H_IMU, H_LATERAL]), np.vstack([H_
 # rows of the stacked IMU measurement that belong to each sensor: (sensor, first, last + 1)
 IMU_BLOCKS = ((Sensor.MAG, 0, 1), (Sensor.GYRO, 1, 2), (Sensor.ACCEL, 2, 4))
 IMU_BLOCKS_NO_MAG = ((Sensor.GYRO, 0, 1), (Sensor.ACCEL, 1, 3))
+
+
+@functools.cache
+def row_sensors(blocks: tuple, ground: bool) -> tuple:
+    """The sensor of each row of a stacked measurement (None: the ground's constraint, the last)."""
+    return tuple(sensor for sensor, i, j in blocks for _ in range(i, j)) + (None,) * ground
 
 
 def level(s: ImuSample, phi: float, p: float):
