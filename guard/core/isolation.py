@@ -30,7 +30,7 @@ from typing import NamedTuple
 import numpy as np
 
 from guard.core.ekf import TH, VX, VY, FilterConfig
-from guard.core.history import keep_since
+from guard.core.history import REWIND_S, keep_since
 from guard.model.samples import GnssFix
 from guard.model.sensors import AMBIGUOUS, CHANNELS, Sensor
 
@@ -38,7 +38,8 @@ WITNESS_S = 1.0        # s of course residuals weighed when a heading alarm is i
 WITNESS_Z = 2.0        # a witness disagrees with the filter when its mean residual is this many standard errors
 JUMP_Z2 = 9.0          # a jump tells better than a drift by this many heading variances (3 sigma)
 TURN_Z = (3.0, 2.0)    # two heading sources turned differently beyond the first, alike within the second (z)
-RUN_S = 20.0           # s: how far back a GNSS velocity alarm's run is weighed (the rewind's span)
+RUN_S = REWIND_S       # s: how far back a GNSS velocity alarm's run is weighed
+GAP_S = 1.0            # s: a run's witnesses with a longer gap between two of them are not weighed
 
 
 class HeadingWitness(NamedTuple):     # one magnetometer fusion
@@ -68,6 +69,8 @@ class Witnesses:
         self.mag_run: deque[HeadingWitness] = deque()
         self.last_vel = (np.zeros(2), np.eye(2))   # the latest GNSS velocity innovation and its S
         self.vel_sigma = f.gnss_vel_sigma_mps       # the latest fix's velocity noise (its R)
+        self.turned = 0.0                           # how far the compass turned from the gyro over the last
+                                                    # run that named it (rad, compass_turned)
 
     def add_heading(self, w: HeadingWitness) -> None:
         self.mag.append(w)
@@ -134,23 +137,39 @@ class Witnesses:
         return sensor, (() if z >= WITNESS_Z else AMBIGUOUS.get(sensor, ())), None
 
     def compass_turned(self, now_us: int, onset_us: int, gyro_bias: float) -> bool:
-        """Whether, over a GNSS velocity alarm's run, the magnetometer turned apart from the gyro and
-        the course, they alike: a compass turned slowly (0.5 degree/s) is learnt by the filter as the
-        gyro's bias, the heading following it, until the course it turns the GNSS velocity away from
-        alarms; over the last 2 WITNESS_S it turned too little to tell, over the run it is plain. The
-        gyro's heading uses the filter's bias at the run's onset, before it learnt the compass's turn."""
+        """Whether, over a GNSS velocity alarm's run, the magnetometer turned apart from the gyro and the
+        course, they alike. A compass turned slowly (0.5 degree/s) is learnt by the filter as the gyro's
+        bias and the heading follows it, until the GNSS velocity, turned off the course with it, alarms:
+        over the last 2 WITNESS_S the compass turned too little to tell, over the run it is plain. The
+        gyro's heading uses the filter's bias at the run's onset, from before it learnt the compass's
+        turn. Both records must cover the run without a gap (a course cleared while standing still, a
+        compass fallen silent), and the GNSS velocity's innovation must lie across the track, as a
+        heading's error turns it, not along it. Sets `turned`, the compass's turn from the gyro over the run."""
         if now_us - onset_us <= 2 * WITNESS_S * 1e6:
             return False                            # the last 2 WITNESS_S say as much (turns)
         mag = [w for w in self.mag_run if w.t_us >= onset_us]
         course = [c for c in self.course_run if c.t_us >= onset_us]
+        for t in ([w.t_us for w in mag], [c.t_us for c in course]):
+            if len(t) < 3 or t[0] - onset_us > GAP_S * 1e6 or now_us - t[-1] > GAP_S * 1e6 or \
+                    max(np.diff(t)) > GAP_S * 1e6:
+                return False
+        r, c = self.last_vel[0], course[-1].course
+        if abs(r[1] * math.cos(c) - r[0] * math.sin(c)) < abs(r[0] * math.cos(c) + r[1] * math.sin(c)):
+            return False                            # off along the track, not across it as a heading turns it
         turns = self.turns(now_us, gyro_bias, mag, course)
         if turns is None or turns[1] is None:
             return False
         z_gm, z_gc, z_mc = turns
-        return abs(z_gm) >= TURN_Z[0] and abs(z_mc) >= TURN_Z[1] > abs(z_gc)     # as `apart` in isolate
+        if not (abs(z_gm) >= TURN_Z[0] and abs(z_mc) >= TURN_Z[1] > abs(z_gc)):     # as `apart` in isolate
+            return False
+        t, heading, rate = np.array(mag)[:, :3].T
+        t = (t - t[0]) / 1e6
+        d = np.unwrap(heading) - np.cumsum((rate - gyro_bias) * np.diff(t, prepend=0.0))
+        self.turned = float(np.polyfit(t, d, 1)[0] * t[-1])
+        return True
 
-    def turns(self, now_us: int, gyro_bias: float, mag=None, course=None
-              ) -> tuple[float, float | None, float | None] | None:
+    def turns(self, now_us: int, gyro_bias: float, mag: list[HeadingWitness] | None = None,
+              course: list[CourseWitness] | None = None) -> tuple[float, float | None, float | None] | None:
         """How differently the heading sources turned over the last 2 WITNESS_S (or over the witnesses
         given), as z-scores of the slope of their differences: (gyro - magnetometer, gyro - course,
         magnetometer - course), the last two None without the course; None without the magnetometer.

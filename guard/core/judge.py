@@ -66,15 +66,16 @@ class Judge:
     def _alarms(self, sensor, t_us, hits, stat, thr, ekf, now_us, gnss_index) -> list[Event]:
         """The alarms of a sensor in use: named (isolation), raised, and what it excludes."""
         events: list[Event] = []
-        health, bw = self.health, ekf.x[BW]
+        health, bw, run = self.health, ekf.x[BW], self._run(sensor)
         for i, offset in hits:
-            named, ambiguous, channel = self.witnesses.isolate(sensor, now_us, bw, self._run(sensor)) \
+            named, ambiguous, channel = self.witnesses.isolate(sensor, now_us, bw, run) \
                 if sensor in (Sensor.MAG, Sensor.GNSS_VEL) else (sensor, (), None)
             if named in health.excluded:
                 continue
             channel = CHANNELS[sensor][i] if named == sensor else channel or CHANNELS[named][0]
             if named != sensor:                 # a witness named it: its own offset, not the alarm's
-                offset = self.witnesses.gyro_bias() if named == Sensor.GYRO else self.witnesses.lateral_bias(bw)
+                offset = self.witnesses.gyro_bias() if named == Sensor.GYRO else self.witnesses.turned \
+                    if named == Sensor.MAG else self.witnesses.lateral_bias(bw)
             events.append(Alarm(t_us, gnss_index, named, channel, stat[i], thr[i], offset,
                                 self.detector.name, ambiguous, standing=self.record_alarm(named, t_us)))
             if not self.cfg.exclude_on_alarm:
@@ -86,6 +87,10 @@ class Judge:
                 # bias): back as far as the history goes
                 self.rewind_epochs = self.detector.run_length.get(sensor, 0) \
                     if sensor == Sensor.GNSS_POS else len(self.history)
+            if named == Sensor.MAG and sensor == Sensor.GNSS_VEL and run is not None:
+                # the course named the compass over the alarm's run: the gyro bias the filter learnt from
+                # it since the run began is the compass's turn, given back (as the accelerometer's below)
+                ekf.x[BW] = run[1]
             if named == Sensor.ACCEL and named != sensor:
                 # the bias of the oldest epoch kept is taken for the sensor's own; what the filter
                 # absorbed since is the attack's, given back
@@ -95,10 +100,12 @@ class Judge:
         return events
 
     def _run(self, sensor: Sensor) -> tuple[int, float] | None:
-        """A GNSS velocity alarm's run: the time of the epoch it began at (one epoch per fix, as far back
-        as the history goes) and the filter's gyro bias then."""
+        """A GNSS velocity alarm's run, to weigh the compass over: the time of the epoch it began at (one
+        epoch per fix, as far back as the history goes) and the filter's gyro bias then. None for another
+        sensor, or with the compass already excluded: no longer fused, it pulls nothing, and a GNSS
+        velocity alarm then is the GNSS's (named the compass, it would be dropped as already excluded)."""
         n, epochs = self.detector.run_length.get(sensor, 0), self.history.epochs
-        if sensor != Sensor.GNSS_VEL or n < 1 or not epochs:
+        if sensor != Sensor.GNSS_VEL or n < 1 or not epochs or Sensor.MAG in self.health.excluded:
             return None
         epoch = epochs[-min(n, len(epochs))]
         return epoch.t_us, float(epoch.x[BW])

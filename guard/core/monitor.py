@@ -41,7 +41,7 @@ from guard.core.ekf import BM, TH, VX, VY, FilterConfig, NavEKF
 from guard.core.geo import WMM_EPOCH, LocalFrame, declination_rad
 from guard.core.fit import ModelFit
 from guard.core.health import Health
-from guard.core.history import History, state_minus
+from guard.core.history import REWIND_S, History, state_minus
 from guard.core.isolation import HeadingWitness, Witnesses
 from guard.core.judge import Judge
 from guard.core.longrun import LongRun
@@ -50,7 +50,6 @@ from guard.model.events import Estimate, Event, Notice
 from guard.model.samples import Attitude, GnssFix, ImuSample, VehicleType
 from guard.model.sensors import CHANNELS, RECEIVER, Sensor
 
-REWIND_S = 20.0        # s of filter history kept to undo what a GNSS attack fed the filter before its alarm
 CAP_FIXES = 5          # fixes in a row whose receiver calls itself worse than guard takes: then said
 
 

@@ -437,8 +437,8 @@ def test_core_a_rewind_leaves_out_the_sensors_judged_attacked(seed):
     """A rewind re-runs the IMU fusions since the attack's first epoch without the sensors excluded
     now: a compass turned 4 degrees at 20 s alarms within a second, and what it fed the filter before
     its alarm is not fed again by the GNSS velocity alarm's rewind at 40 s (which goes back 20 s). Fed
-    again, it turned the heading 2.7 to 4.2 degrees for the rest of the flight; left out, the heading
-    is the gyro's from before the compass turned."""
+    again, it turned the heading 2.7 to 4.4 degrees off over the 10 s after the rewind; left out, the
+    heading is the gyro's from before the compass turned (0.4 at most)."""
     samples = drive(60.0, seed=seed, yaw=0.7, mag_turn=lambda t: 4.0 if t >= 20.0 else 0.0,
                     vel_offset=lambda t: (1.0, 0.0) if t >= 40.0 else (0.0, 0.0))
     mon, events = run(samples)
@@ -473,15 +473,42 @@ def test_core_on_the_ground_a_compass_turned_slowly_is_named_over_the_alarms_run
     learnt as the gyro's bias, the heading following it, until the course alarms the GNSS velocity;
     over the last 2 s the compass turned too little to tell, over the alarm's whole run it turned
     apart from the gyro (with the filter's bias of the run's onset) and the course: the magnetometer
-    is named and excluded, and the heading holds to the course (on the code before, the GNSS velocity
-    was named, excluded, and the heading followed the compass 15 to 30 degrees off)."""
+    is named and excluded, its alarm sized by that turn, and the heading holds to the course (on the
+    code before, the GNSS velocity was named, excluded, and the heading followed the compass 15 to 30
+    degrees off)."""
     samples = drive(80.0, seed=seed, yaw=0.7, mag_turn=lambda t: max(0.0, t - 20.0) * deg_per_s)
     mon, events = run(samples, MonitorConfig(declination_deg=0.0, vehicle="ground"))
     alarms = of(events, Alarm)
     assert alarms and alarms[0].sensor == "mag" and alarms[0].ambiguous_with == (), alarms[:1]
     assert alarms[0].t_us - T0_US <= (20.0 + within_s) * 1e6, alarms[0]
+    # its size: the compass's turn (clockwise, a smaller ENU heading) over the run, which began after the turn
+    turn = deg_per_s * (alarms[0].t_us - T0_US - 20e6) / 1e6
+    assert 1.0 <= -math.degrees(alarms[0].offset) <= turn, (math.degrees(alarms[0].offset), turn)
     heading = [abs(math.degrees(math.remainder(e.yaw_rad - 0.7, math.tau))) for e in of(events, Estimate)]
     assert max(heading) < 4.0, max(heading)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_core_a_spoof_after_a_compass_named_over_a_run_is_still_the_gnss(seed):
+    """The compass, turned slowly, is named over a GNSS velocity alarm's run and excluded; a spoof that
+    then moves the receiver along its track (0.2 m/s^2 up to 2 m/s, position with it) is the GNSS's:
+    its alarm is not named the compass (already out, it would be dropped) and comes as without the
+    compass's turn, within 10 s."""
+    yaw, t_spoof = 0.7, 40.0
+
+    def dv(t):
+        return min(2.0, 0.2 * max(0.0, t - t_spoof))
+
+    def dp(t):
+        u = max(0.0, t - t_spoof)
+        return 0.1 * u * u if u <= 10.0 else 10.0 + 2.0 * (u - 10.0)
+    samples = drive(70.0, seed=seed, yaw=yaw, mag_turn=lambda t: max(0.0, t - 20.0) * 0.5,
+                    vel_offset=lambda t: (dv(t) * math.cos(yaw), dv(t) * math.sin(yaw)),
+                    gnss_offset=lambda t: (dp(t) * math.cos(yaw), dp(t) * math.sin(yaw)))
+    mon, events = run(samples, MonitorConfig(declination_deg=0.0, vehicle="ground"))
+    alarms = [(a.sensor, (a.t_us - T0_US) / 1e6) for a in of(events, Alarm)]
+    assert alarms[0][0] == "mag" and alarms[0][1] < t_spoof, alarms
+    assert any(s in ("gnss_vel", "gnss_pos") and t_spoof <= t <= t_spoof + 10.0 for s, t in alarms), alarms
 
 
 def test_core_a_fix_stamped_before_the_last_imu_sample_is_rewound_exactly():

