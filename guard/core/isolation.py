@@ -12,10 +12,11 @@ residual against the filter's track and heading), and from them names the sensor
 - a GNSS velocity whose course agrees with the filter's heading but not with its track (the heading
   turned by the filter's own sideways velocity): the lateral accelerometer; on wheels only it pushes
   the track sideways.
-- a GNSS velocity alarm whose run began more than 2 WITNESS_S before it: the same turns over the
-  whole run (up to RUN_S), the gyro's with the filter's bias of the run's onset; the magnetometer
-  apart from the gyro and the course, they alike: the magnetometer. A compass turned slowly is
-  learnt as the gyro's bias and the heading follows it, until the course alarms the GNSS velocity.
+- a GNSS velocity alarm whose run began more than 2 WITNESS_S before it, its innovation across the
+  track and the magnetometer still in use: the same turns over the whole run (up to RUN_S), the
+  gyro's with the filter's bias of the run's onset; the magnetometer apart from the gyro and the
+  course, they alike: the magnetometer. A compass turned slowly is learnt as the gyro's bias and the
+  heading follows it, until the course alarms the GNSS velocity.
 Without the course (in the air, standing still) a magnetometer alarm cannot be told from a gyro
 bias, and an along-track GNSS velocity alarm never can be told from an accelerometer bias (a
 coordinated spoof looks the same): the alarm names both.
