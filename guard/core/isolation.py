@@ -60,6 +60,14 @@ class CourseWitness(NamedTuple):      # one GNSS velocity at speed (ground vehic
     r0: float                         # course - heading
 
 
+def compass_less_gyro(mag, gyro_bias: float) -> tuple[np.ndarray, np.ndarray]:
+    """(t, d) of magnetometer witnesses: their times (s from the first) and their heading less the
+    gyro's, its yaw rate less gyro_bias integrated."""
+    t, heading, rate = np.array(mag)[:, :3].T
+    t = (t - t[0]) / 1e6
+    return t, np.unwrap(heading) - np.cumsum((rate - gyro_bias) * np.diff(t, prepend=0.0))
+
+
 class Witnesses:
     def __init__(self, f: FilterConfig, freeze_speed_mps: float):
         self.f = f
@@ -163,9 +171,7 @@ class Witnesses:
         z_gm, z_gc, z_mc = turns
         if not (abs(z_gm) >= TURN_Z[0] and abs(z_mc) >= TURN_Z[1] > abs(z_gc)):     # as `apart` in isolate
             return False
-        t, heading, rate = np.array(mag)[:, :3].T
-        t = (t - t[0]) / 1e6
-        d = np.unwrap(heading) - np.cumsum((rate - gyro_bias) * np.diff(t, prepend=0.0))
+        t, d = compass_less_gyro(mag, gyro_bias)
         self.turned = float(np.polyfit(t, d, 1)[0] * t[-1])
         return True
 
@@ -198,9 +204,7 @@ class Witnesses:
     def jumped(self, gyro_bias: float) -> bool:
         """Whether the magnetometer's heading less the gyro's, over the last 2 WITNESS_S, is told better
         by one jump (two levels) than by a drift (a line): a step in the magnetometer, not a gyro bias."""
-        t, heading, rate = np.array(self.mag)[:, :3].T
-        t = (t - t[0]) / 1e6
-        d = np.unwrap(heading) - np.cumsum((rate - gyro_bias) * np.diff(t, prepend=0.0))
+        t, d = compass_less_gyro(self.mag, gyro_bias)
         if len(d) < 4:
             return False
         line = np.polyval(np.polyfit(t, d, 1), t)
