@@ -122,7 +122,7 @@ class History:
         if self.delay_s > 0:
             self.states.append((fix_t_us - int(self.delay_s * 1e6), x_fix.copy()))
 
-    def rewind(self, ekf: NavEKF, epochs: int, now_us: int, leave_out: frozenset[Sensor] = frozenset()) -> None:
+    def rewind(self, ekf: NavEKF, epochs: int, now_us: int, leave_out: frozenset[Sensor] = frozenset()) -> int | None:
         """Undo the last `epochs` GNSS epochs: back to the filter before the attack's first sample was
         fused, then the IMU fusions since, GNSS left out, and predict to now. The rows of the sensors in
         `leave_out` (those judged attacked now) are left out too: a compass excluded by an alarm of its
@@ -136,10 +136,11 @@ class History:
         the sensor that was not the attacked one (a gyro bias in the air, `mag|gyro`, the compass
         excluded), the good rows left out are the compass's. The bias states come back with the rest
         (not the oldest epoch's for every rewind: in the filter's first seconds those are start-up
-        guesses, and coasting on them keeps a GNSS that agrees again out)."""
+        guesses, and coasting on them keeps a GNSS that agrees again out). Returns the time rewound to
+        (None: no history), from which the estimate coasts."""
         epochs = min(epochs, len(self.epochs))     # a run longer than the history: as far back as it goes
         if epochs < 1:
-            return
+            return None
         t0, x, P = self.epochs[-epochs]
         delayed, states = self.delay_s > 0, [(t0, x.copy())]   # with a receiver latency: re-run states
         ekf.x, ekf.P, t = x.copy(), P.copy(), t0
@@ -169,3 +170,4 @@ class History:
             kept = [st for st in self.states if st[0] < t0]
             self.states.clear()
             self.states.extend(kept + states)
+        return t0

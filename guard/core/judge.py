@@ -9,6 +9,7 @@ witnesses and the history it is given, and the filter's state, and never calls t
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 
@@ -155,14 +156,16 @@ class Judge:
         return self.health.readmit(sensor, t_us, gnss_index, silent)
 
     def reanchor(self, ekf: NavEKF, fix: GnssFix, en: tuple[float, float], gnss_aid, max_coast_m: float,
-                 gnss_index: int) -> list[Event]:
+                 gnss_index: int, widen: Callable[[float], float] | None = None) -> list[Event]:
         """An exclusion has a bounded life: once the other sensors cannot hold the estimate to within
         max_coast_m (1 sigma), the GNSS can be neither confirmed nor refuted; the estimate is
         re-anchored on it, and its alarm stands (latched, no Cleared). What a patient attacker gains:
         an offset that grew slowly enough to be excluded, held out for that long, is then taken.
         Asked at each fix while the GNSS is out, and at once after an alarm's rewind (Monitor.finish),
-        whose estimate may already be beyond holding (GNSS alone: nothing else held it)."""
-        sigma = math.sqrt(ekf.P[X, X] + ekf.P[Y, Y])
+        whose estimate may already be beyond holding (GNSS alone: nothing else held it). `widen`: the
+        filter's uncertainty as far as the drift measured on this vehicle makes it (guard.core.drift)."""
+        filtered = math.sqrt(ekf.P[X, X] + ekf.P[Y, Y])
+        sigma = filtered if widen is None else widen(filtered)
         if sigma <= max_coast_m:
             return []
         anchor(ekf, fix, en, gnss_aid.sigma_pos(fix), gnss_aid.sigma_vel(fix), self.history.delay_s)
@@ -174,7 +177,9 @@ class Judge:
         own = [s for s in RECEIVER if s in self.health.excluded and s not in self.health.with_receiver]
         again = bool(own) and all(self.last_alarm.get(s, (0, False))[1] for s in own)
         events: list[Event] = [Notice(fix.t_us, "info" if again else "warning", f"GNSS could not be confirmed "
-                                      f"or refuted (the estimate +-{sigma:.0f} m without it): re-anchored on it"
+                                      f"or refuted (the estimate +-{sigma:.0f} m without it"
+                                      f"{', as far as its IMU drifts in this flight' if sigma > filtered else ''}): "
+                                      f"re-anchored on it"
                                       f"{' again' if again else ''}, its alarm stands")]
         for sensor in [s for s in RECEIVER if s in self.health.excluded]:
             events += self.readmit(sensor, fix.t_us, gnss_index, silent=True)
