@@ -8,6 +8,7 @@ the orchestration; each part owns its data and never calls back:
     health      exclusion and re-admission                                   guard.core.health
     isolation   the heading's witnesses: which sensor an alarm names        guard.core.isolation
     history     the rewind after a GNSS alarm, a late receiver's states      guard.core.history
+    drift       how far the IMU alone strays on this vehicle, for a coast   guard.core.drift
 
 Per IMU sample: level the IMU with the autopilot's roll and pitch (a flying drone is tilted), set it
 aside within 0.5 s of a blow over 3 g (aiding/impact: a landing's point sample is no acceleration to
@@ -36,6 +37,7 @@ from guard.core.aiding.impact import BUDGET_S, HOLD_S, IMPACT_G, MEAN_S, WINDOW_
 from guard.core.aiding.tilt import Tilt
 from guard.core.aiding.imu import Averager, ImuAiding, RateWatch, fuse_rows, heading, level, row_sensors
 from guard.core.anchor import Learnt, diverged, initial_state
+from guard.core.drift import Drift
 from guard.core.detectors import DetectorConfig, make_detector
 from guard.core.ekf import BM, TH, VX, VY, FilterConfig, NavEKF
 from guard.core.geo import WMM_EPOCH, LocalFrame, declination_rad
@@ -107,6 +109,7 @@ class Monitor:
         self._learnt: Learnt | None = None          # what a restarted filter keeps of the vehicle (_reinitialise)
         self._fix: GnssFix | None = None            # the latest fix, and where it is in the local frame
         self._fix_en: tuple[float, float] | None = None
+        self.drift = Drift()                        # the IMU's open-loop drift, measured in flight (the vehicle's)
         self._reset()
 
     def _reset(self) -> None:
@@ -123,6 +126,8 @@ class Monitor:
         self.freeze = FreezeWatch(self.cfg.freeze_speed_mps)
         self.averager = Averager(self.cfg.imu_fusion_hz)
         self.impact = Impact()
+        self.drift.restart()
+        self._coast_from: int | None = None         # the time of the last GNSS position the estimate holds
         self.detector.reset()
         self._heading_unset = False                 # the filter started before the magnetometer spoke
         self._coarse_said = False                   # a fix too coarse to start on: said once per start
@@ -169,7 +174,11 @@ class Monitor:
         Estimate, which wait for the next sample)."""
         events: list[Event] = []
         if self.judge.rewind_epochs:
-            self.history.rewind(self.ekf, self.judge.rewind_epochs, self.t_us, frozenset(self.health.excluded))
+            back_to = self.history.rewind(self.ekf, self.judge.rewind_epochs, self.t_us,
+                                          frozenset(self.health.excluded))
+            if back_to is not None:
+                self._coast_from = back_to
+            self.drift.restart()
             self.judge.rewind_epochs = 0
             # what the rewind left may already be more than the other sensors can hold (GNSS alone, where
             # nothing else holds the position, or a long rewind in the air): then the alarm epoch's own
@@ -270,6 +279,7 @@ class Monitor:
             aid = self.gnss_aid.velocity(fix, xd)
             self.witnesses.add_course(fix, xd, ekf.P[TH, TH], self.ground, math.sqrt(aid.R[0, 0]))
             events += self._measure(Sensor.GNSS_VEL, fix.t_us, aid)
+        self._probe(fix)
         if delayed:                 # the correction applies to the stored states too: the next fix sees it
             history.shift(state_minus(ekf.x, before))
         events += self.fit.check(fix.t_us)
@@ -285,11 +295,34 @@ class Monitor:
                         np.diagonal(self.ekf.P).copy(), (f.lat0, f.lon0, f.alt0), self._fix_en)
 
     def _reanchor(self, fix: GnssFix) -> list[Event]:
-        """An exclusion has a bounded life (Judge.reanchor)."""
+        """An exclusion has a bounded life (Judge.reanchor), as long as the filter's uncertainty and the
+        drift measured on this vehicle (guard.core.drift) say the estimate can be held."""
         if Sensor.GNSS_POS not in self.health.excluded:
             return []
-        return self.judge.reanchor(self.ekf, fix, self._fix_en, self.gnss_aid,
-                                   self.cfg.max_coast_m, self.gnss_index)
+        coast_s = (fix.t_us - self._coast_from) / 1e6 if self._coast_from is not None else 0.0
+        # the drift is the IMU's alone: a coast the GNSS velocity still holds is the filter's to judge
+        alone = Sensor.GNSS_VEL in self.health.excluded or fix.vel_n_mps is None or \
+            not self.cfg.filter.use_gnss_velocity
+        widen = (lambda sigma: self.drift.widened(sigma, coast_s)) if alone else None
+        events = self.judge.reanchor(self.ekf, fix, self._fix_en, self.gnss_aid, self.cfg.max_coast_m,
+                                     self.gnss_index, widen)
+        if events:
+            self._coast_from = fix.t_us
+        return events
+
+    def _probe(self, fix: GnssFix) -> None:
+        """The drift's probes (guard.core.drift), on an inertial air vehicle: measured at a fix fused, one
+        started at a fix fused with every test calm; they end when the GNSS is set aside."""
+        if Sensor.GNSS_POS in self.health.excluded:
+            self.drift.restart()
+            return
+        self._coast_from = fix.t_us
+        if self.ground or not self.inertial:
+            return
+        calm = self.judge.calm
+        self.drift.fix(fix.t_us, self._fix_en, calm)
+        if calm:
+            self.drift.start(fix.t_us, self.ekf.x)
 
     def _freeze(self, fix: GnssFix) -> list[Event]:
         """A frozen (replayed or stuck) GNSS: its position and velocity are excluded together."""
@@ -365,6 +398,8 @@ class Monitor:
             keep.append(len(r) - 1)                # a constraint, not a sensor: never tested, always fused
         self.history.imu_fused(s.t_us, fuse_rows(self.ekf, s.t_us, aid, r, S, PHT, keep, angle,
                                                  row_sensors(blocks, bool(self.ground))), self.ekf.x)
+        if not self.ground:
+            self.drift.imu(s.t_us, ax, ay, float(self.ekf.x[TH]))
         return events
 
     def _blow(self, s: ImuSample, events: list[Event]) -> bool:
@@ -373,6 +408,7 @@ class Monitor:
         aside, dv_var = self.impact.check(s)
         if aside:
             self.averager.drop()                    # the samples before it, not to be averaged with those 0.5 s after
+            self.drift.restart()                    # nor dead-reckoned through
             if dv_var > 0.0:
                 self.ekf.blow(dv_var)
                 self.history.blow(s.t_us, dv_var)
