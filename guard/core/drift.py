@@ -18,9 +18,12 @@ while every test is calm). `sigma(age)` is their root mean square in the age's b
 TAU_S: what an estimate that has coasted that long is worth on this vehicle, in this flight.
 
 The judge takes the larger of the filter's uncertainty and this, the latter at most F_MAX times the
-former: an attacker who moves the GNSS while the tests stay calm can make the drift look larger, and so
-end an exclusion sooner, but by no more than that. A wheeled vehicle's coast is held by its sideways
-constraint, which this dead reckoning has not: it is measured on air vehicles only (Monitor).
+former, on a coast on the IMU alone. An attacker who moves the GNSS while every test stays calm makes
+the drift look as large as he moves it: a GNSS moved 14 m back and forth over a minute (0.15 m/s^2,
+which a vibrating IMU does not tell from its own wander) ends the coast after his later alarm at once.
+That is no more than he could do without it: an offset that large, laid in that slowly, raises no alarm
+at all. A wheeled vehicle's coast is held by its sideways constraint, which this dead reckoning has
+not: it is measured and applied on air vehicles only (Monitor).
 """
 
 from __future__ import annotations
@@ -36,9 +39,10 @@ PROBE_EVERY_S = 5.0     # s between probes' starts
 PROBE_S = 32.0          # s a probe runs
 EDGES_S = (1.0, 2.0, 4.0, 8.0, 16.0, PROBE_S)   # the age bins' edges: [1, 2), [2, 4), ... [16, 32)
 TAU_S = 300.0           # s, the memory of each bin's mean square
-MIN_SAMPLES = 5         # a bin's samples before it is believed
+MIN_PROBES = 3          # probes a bin has measured before it is believed
 F_MAX = 4.0             # the most the drift may widen the filter's uncertainty
-FORGET = 1.0 - math.exp(-PROBE_EVERY_S / TAU_S)     # each sample's weight once a bin's memory is full
+FORGET = 1.0 - math.exp(-PROBE_EVERY_S / TAU_S)     # each probe's weight once a bin's memory is full
+GAP_S = 0.5             # IMU fusions further apart than this are not dead-reckoned across
 
 
 class Drift:
@@ -51,9 +55,10 @@ class Drift:
     def __init__(self):
         self.sums = [0.0] * 8               # V_e, V_n, P_e, P_n, C1, S1, C2, S2
         self.t_us: int | None = None        # the sums' time (the last IMU fusion)
-        self.probes: list[tuple] = []       # (t0_us, p0, v0, b, sums at t0)
-        self.ms = [0.0] * (len(EDGES_S) - 1)    # each age bin's mean square distance
-        self.n = [0] * (len(EDGES_S) - 1)       # and its samples
+        # each running probe: [t0_us, p0, v0, biases, sums at t0, its bin now, sum of d^2 and count in it]
+        self.probes: list[list] = []
+        self.ms = [0.0] * (len(EDGES_S) - 1)    # each age bin's mean square distance, over probes
+        self.n = [0] * (len(EDGES_S) - 1)       # and the probes it has taken
         self._last_start: int | None = None
 
     def start(self, t_us: int, x: np.ndarray) -> None:
@@ -66,10 +71,12 @@ class Drift:
         # the estimate at the fix's time, carried back to the sums' by its velocity
         back = (t_us - self.t_us) / 1e6
         p0 = (x[X] - v0[0] * back, x[Y] - v0[1] * back)
-        self.probes.append((self.t_us, p0, v0, (float(x[BAX]), float(x[BAY])), tuple(self.sums)))
+        self.probes.append([self.t_us, p0, v0, (float(x[BAX]), float(x[BAY])), tuple(self.sums), -1, 0.0, 0])
 
     def imu(self, t_us: int, ax: float, ay: float, theta: float) -> None:
         """One IMU fusion's levelled specific force (forward, left) and the filter's heading."""
+        if self.t_us is not None and t_us - self.t_us > GAP_S * 1e6:
+            self.restart()                  # an IMU gap: what it did then is unknown
         if self.t_us is None or t_us <= self.t_us:
             self.t_us = t_us if self.t_us is None else self.t_us
             return
@@ -82,9 +89,10 @@ class Drift:
         self.sums = [ve + ae * dt, vn + an * dt, pe + ve * dt + ae * h, pn + vn * dt + an * h,
                      c1 + c * dt, s1 + s * dt, c2 + c1 * dt + c * h, s2 + s1 * dt + s * h]
 
-    def position(self, probe: tuple, t_us: int) -> tuple[float, float]:
-        """Where a probe's dead reckoning puts the vehicle at t_us (at or after the sums' time)."""
-        t0, (pe0, pn0), (ve0, vn0), (b1, b2), (Ve0, Vn0, Pe0, Pn0, C10, S10, C20, S20) = probe
+    def position(self, probe: list, t_us: int) -> tuple[float, float]:
+        """Where a probe's dead reckoning puts the vehicle at t_us (near the sums' time: carried by its
+        velocity from there)."""
+        t0, (pe0, pn0), (ve0, vn0), (b1, b2), (Ve0, Vn0, Pe0, Pn0, C10, S10, C20, S20) = probe[:5]
         ve, vn, pe, pn, c1, s1, c2, s2 = self.sums
         T = (self.t_us - t0) / 1e6
         dc1, ds1 = c1 - C10, s1 - S10                           # the rotation's integrals since t0
@@ -97,25 +105,42 @@ class Drift:
         return e + vel_e * late, n + vel_n * late
 
     def fix(self, t_us: int, en: tuple[float, float], calm: bool) -> None:
-        """A fix: each probe's distance from it, by age (if calm); probes past PROBE_S end."""
+        """A fix fused, showing the vehicle at t_us: each probe's distance from it, in its age's bin (if
+        calm). A probe's bin is taken as one sample, the mean of its distances there, when the probe
+        leaves it; probes past PROBE_S end."""
         if self.t_us is None:
             return
         kept = []
         for probe in self.probes:
             age = (t_us - probe[0]) / 1e6
-            if calm:
-                k = bisect_right(EDGES_S, age) - 1
-                if 0 <= k < len(self.ms):
-                    e, n = self.position(probe, t_us)
-                    d2 = (e - en[0]) ** 2 + (n - en[1]) ** 2
-                    self.n[k] += 1
-                    self.ms[k] += max(1.0 / self.n[k], FORGET) * (d2 - self.ms[k])
+            k = bisect_right(EDGES_S, age) - 1
+            if k != probe[5]:
+                self._take(probe)
+                probe[5] = k
+            if calm and 0 <= k < len(self.ms):
+                e, n = self.position(probe, t_us)
+                probe[6] += (e - en[0]) ** 2 + (n - en[1]) ** 2
+                probe[7] += 1
             if age < PROBE_S:
                 kept.append(probe)
+            else:
+                self._take(probe)
         self.probes = kept
 
+    def _take(self, probe: list) -> None:
+        """A probe's bin, measured: its mean square distance there joins the bin's, forgetting over TAU_S."""
+        k, total, count = probe[5:8]
+        probe[6], probe[7] = 0.0, 0
+        if count == 0 or not 0 <= k < len(self.ms):
+            return
+        self.n[k] += 1
+        self.ms[k] += max(1.0 / self.n[k], FORGET) * (total / count - self.ms[k])
+
     def restart(self) -> None:
-        """A gap, a rewind, a re-anchoring or the GNSS excluded: the running probes end (what they measured stays)."""
+        """A gap, a rewind, a re-anchoring or the GNSS excluded: the running probes end (what they measured
+        stays)."""
+        for probe in self.probes:
+            self._take(probe)
         self.probes = []
         self.sums = [0.0] * 8
         self.t_us = None
@@ -125,7 +150,7 @@ class Drift:
         """The drift measured at this age (m, rms), or None before any bin is. Between the bins' middles
         it is interpolated on log-log axes; before the first it grows as a velocity error's does (with
         the age), after the last as an acceleration error's (with its square)."""
-        known = [k for k, n in enumerate(self.n) if n >= MIN_SAMPLES]
+        known = [k for k, n in enumerate(self.n) if n >= MIN_PROBES]
         if not known or age_s <= 0.0:
             return None
         mids = np.array([math.sqrt(EDGES_S[k] * EDGES_S[k + 1]) for k in known])

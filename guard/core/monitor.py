@@ -300,9 +300,10 @@ class Monitor:
         if Sensor.GNSS_POS not in self.health.excluded:
             return []
         coast_s = (fix.t_us - self._coast_from) / 1e6 if self._coast_from is not None else 0.0
-        # the drift is the IMU's alone: a coast the GNSS velocity still holds is the filter's to judge
-        alone = Sensor.GNSS_VEL in self.health.excluded or fix.vel_n_mps is None or \
-            not self.cfg.filter.use_gnss_velocity
+        # the drift is an air vehicle's IMU's alone: a coast the GNSS velocity holds, a wheeled vehicle's
+        # (its sideways constraint holds it) and one on GNSS alone are the filter's to judge
+        alone = (Sensor.GNSS_VEL in self.health.excluded or fix.vel_n_mps is None or
+                 not self.cfg.filter.use_gnss_velocity) and not self.ground and bool(self.inertial)
         widen = (lambda sigma: self.drift.widened(sigma, coast_s)) if alone else None
         events = self.judge.reanchor(self.ekf, fix, self._fix_en, self.gnss_aid, self.cfg.max_coast_m,
                                      self.gnss_index, widen)
@@ -320,7 +321,8 @@ class Monitor:
         if self.ground or not self.inertial:
             return
         calm = self.judge.calm
-        self.drift.fix(fix.t_us, self._fix_en, calm)
+        # a late receiver's fix shows the vehicle gnss_delay_s before its time stamp
+        self.drift.fix(fix.t_us - int(self.history.delay_s * 1e6), self._fix_en, calm)
         if calm:
             self.drift.start(fix.t_us, self.ekf.x)
 
