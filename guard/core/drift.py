@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 from bisect import bisect_right
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -45,6 +46,21 @@ FORGET = 1.0 - math.exp(-PROBE_EVERY_S / TAU_S)     # each probe's weight once a
 GAP_S = 0.5             # IMU fusions further apart than this are not dead-reckoned across
 
 
+@dataclass(slots=True)
+class Probe:
+    """One dead reckoning: where it started (the sums' time), the estimate then and the sums then; and
+    the age bin it is in, with the sum and count of its squared distances from the fixes there."""
+
+    t0_us: int
+    p0: tuple[float, float]         # position, east and north (m)
+    v0: tuple[float, float]         # ground velocity (m/s)
+    bias: tuple[float, float]       # the filter's accelerometer biases, forward and left (m/s^2)
+    sums0: tuple[float, ...]
+    bin: int = -1
+    d2: float = 0.0
+    count: int = 0
+
+
 class Drift:
     """The probes share one dead reckoning: the IMU's specific force, turned to east-north by the
     filter's heading, integrated once and twice (V, P), and the rotation itself likewise (C1, S1, C2,
@@ -55,8 +71,7 @@ class Drift:
     def __init__(self):
         self.sums = [0.0] * 8               # V_e, V_n, P_e, P_n, C1, S1, C2, S2
         self.t_us: int | None = None        # the sums' time (the last IMU fusion)
-        # each running probe: [t0_us, p0, v0, biases, sums at t0, its bin now, sum of d^2 and count in it]
-        self.probes: list[list] = []
+        self.probes: list[Probe] = []
         self.ms = [0.0] * (len(EDGES_S) - 1)    # each age bin's mean square distance, over probes
         self.n = [0] * (len(EDGES_S) - 1)       # and the probes it has taken
         self._last_start: int | None = None
@@ -71,7 +86,7 @@ class Drift:
         # the estimate at the fix's time, carried back to the sums' by its velocity
         back = (t_us - self.t_us) / 1e6
         p0 = (x[X] - v0[0] * back, x[Y] - v0[1] * back)
-        self.probes.append([self.t_us, p0, v0, (float(x[BAX]), float(x[BAY])), tuple(self.sums), -1, 0.0, 0])
+        self.probes.append(Probe(self.t_us, p0, v0, (float(x[BAX]), float(x[BAY])), tuple(self.sums)))
 
     def imu(self, t_us: int, ax: float, ay: float, theta: float) -> None:
         """One IMU fusion's levelled specific force (forward, left) and the filter's heading."""
@@ -89,10 +104,12 @@ class Drift:
         self.sums = [ve + ae * dt, vn + an * dt, pe + ve * dt + ae * h, pn + vn * dt + an * h,
                      c1 + c * dt, s1 + s * dt, c2 + c1 * dt + c * h, s2 + s1 * dt + s * h]
 
-    def position(self, probe: list, t_us: int) -> tuple[float, float]:
+    def position(self, probe: Probe, t_us: int) -> tuple[float, float]:
         """Where a probe's dead reckoning puts the vehicle at t_us (near the sums' time: carried by its
         velocity from there)."""
-        t0, (pe0, pn0), (ve0, vn0), (b1, b2), (Ve0, Vn0, Pe0, Pn0, C10, S10, C20, S20) = probe[:5]
+        (pe0, pn0), (ve0, vn0), (b1, b2) = probe.p0, probe.v0, probe.bias
+        Ve0, Vn0, Pe0, Pn0, C10, S10, C20, S20 = probe.sums0
+        t0 = probe.t0_us
         ve, vn, pe, pn, c1, s1, c2, s2 = self.sums
         T = (self.t_us - t0) / 1e6
         dc1, ds1 = c1 - C10, s1 - S10                           # the rotation's integrals since t0
@@ -112,25 +129,25 @@ class Drift:
             return
         kept = []
         for probe in self.probes:
-            age = (t_us - probe[0]) / 1e6
+            age = (t_us - probe.t0_us) / 1e6
             k = bisect_right(EDGES_S, age) - 1
-            if k != probe[5]:
+            if k != probe.bin:
                 self._take(probe)
-                probe[5] = k
+                probe.bin = k
             if calm and 0 <= k < len(self.ms):
                 e, n = self.position(probe, t_us)
-                probe[6] += (e - en[0]) ** 2 + (n - en[1]) ** 2
-                probe[7] += 1
+                probe.d2 += (e - en[0]) ** 2 + (n - en[1]) ** 2
+                probe.count += 1
             if age < PROBE_S:
                 kept.append(probe)
             else:
                 self._take(probe)
         self.probes = kept
 
-    def _take(self, probe: list) -> None:
+    def _take(self, probe: Probe) -> None:
         """A probe's bin, measured: its mean square distance there joins the bin's, forgetting over TAU_S."""
-        k, total, count = probe[5:8]
-        probe[6], probe[7] = 0.0, 0
+        k, total, count = probe.bin, probe.d2, probe.count
+        probe.d2, probe.count = 0.0, 0
         if count == 0 or not 0 <= k < len(self.ms):
             return
         self.n[k] += 1
