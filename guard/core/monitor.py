@@ -37,8 +37,8 @@ from guard.core.aiding.impact import BUDGET_S, HOLD_S, IMPACT_G, MEAN_S, WINDOW_
 from guard.core.aiding.tilt import Tilt
 from guard.core.aiding.imu import Averager, ImuAiding, RateWatch, fuse_rows, heading, level, row_sensors
 from guard.core.anchor import Learnt, diverged, initial_state
-from guard.core.drift import Drift
 from guard.core.detectors import DetectorConfig, make_detector
+from guard.core.drift import Drift
 from guard.core.ekf import BM, TH, VX, VY, FilterConfig, NavEKF
 from guard.core.geo import WMM_EPOCH, LocalFrame, declination_rad
 from guard.core.fit import ModelFit
