@@ -129,6 +129,7 @@ def _check(cfg: Config, where: str) -> None:
         "monitor.readmit_s": (cfg.monitor.readmit_s <= 0, "must be > 0"),
         "filter.gnss_delay_s": (flt.gnss_delay_s > 1.0, "must be at most 1 s (receivers lag 0.05 to 0.25 s)"),
         "filter.gnss_latency_sigma_s": (not 0 <= flt.gnss_latency_sigma_s <= 1.0, "must be within 0..1 s"),
+        "filter.gnss_latency_sigma_air_s": (not 0 <= flt.gnss_latency_sigma_air_s <= 1.0, "must be within 0..1 s"),
         "filter.mag_offset_per_turn_rad": (not 0 <= flt.mag_offset_per_turn_rad <= 0.5, "must be within 0..0.5 rad"),
         "filter.mag_offset_rad": (abs(flt.mag_offset_rad) > math.pi, "must be within -pi..pi rad"),
         "monitor.vehicle": (cfg.monitor.vehicle not in ("auto", "ground", "air"),

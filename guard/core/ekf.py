@@ -87,12 +87,15 @@ class FilterConfig:
                                       # The attitude is carried to each IMU sample by the gyro (guard.core.aiding.tilt),
                                       # but the leak stays: it also covers the autopilot's own tilt error in a
                                       # manoeuvre (at 0.05 the 24 external real flights raised 112 alarms against 98)
-    gnss_latency_sigma_s: float = 0.0   # off. How far the receiver's latency is unknown: a fix's velocity is the
-                                      # vehicle's of up to this long before it, so (this * |a|)^2, |a| the estimated
-                                      # horizontal acceleration, joins its R (guard.core.aiding.gnss). Measured, not
-                                      # taken: 0.2 quiets hard-flown real copters (README), but catches the
-                                      # simulator's accelerometer biases at 1.9 to 2.4 s instead of 1.7 to 2.0
-                                      # in the air, a car's sideways one at 6.8 to 10.3 s instead of 3.2 to 4.0
+    gnss_latency_sigma_s: float = 0.0   # a ground vehicle's (off): how far the receiver's latency is unknown. A
+                                      # fix's velocity is the vehicle's of up to this long before it, so this^2 a a^T,
+                                      # a the mean horizontal acceleration since the last fix, joins its R
+                                      # (guard.core.aiding.gnss). Off on wheels: a car's turn is all sideways
+                                      # acceleration, and at 0.15 the simulator's cars caught their sideways
+                                      # accelerometer biases at 4.3 to 4.9 s instead of 3.2 to 4.0, on 2 of the
+                                      # second family's 8 vehicles not at all; no real ground log asked for it
+    gnss_latency_sigma_air_s: float = 0.15   # an air vehicle's: real copters' GNSS velocity lags their IMU by 0.05
+                                      # to 0.25 s (README, "The receiver's latency, unknown")
     gnss_delay_s: float = 0.0         # the receiver's latency: a fix is compared with the state this long before it
     gyro_sigma_radps: float = 0.01    # the floor: the gyro's own noise, measured from its samples, when larger
     accel_sigma_mps2: float = 0.15    # likewise (vibration: 0.25 to 0.66 m/s^2 in two real copter flights at 25 Hz)

@@ -32,7 +32,8 @@ import numpy as np
 
 from guard.core.aiding import Aid
 from guard.core.aiding.compass import NO_COMPASS_S, CompassWatch
-from guard.core.aiding.gnss import START_H_ACC_M, START_HDOP, FreezeWatch, GnssAiding
+from guard.core.aiding.gnss import (START_H_ACC_M, START_HDOP, FreezeWatch, GnssAiding, across_track,
+                                    gnss_velocity_model)
 from guard.core.aiding.impact import BUDGET_S, HOLD_S, IMPACT_G, MEAN_S, WINDOW_S, Impact
 from guard.core.aiding.tilt import Tilt
 from guard.core.aiding.imu import Averager, ImuAiding, RateWatch, fuse_rows, heading, level, row_sensors
@@ -52,6 +53,7 @@ from guard.model.events import Estimate, Event, Notice
 from guard.model.samples import Attitude, GnssFix, ImuSample, VehicleType
 from guard.model.sensors import CHANNELS, RECEIVER, Sensor
 
+MAX_FIX_INTERVAL_S = 2.0   # s: fixes further apart say nothing of the acceleration between them (a gap)
 CAP_FIXES = 5          # fixes in a row whose receiver calls itself worse than guard takes: then said
 
 
@@ -134,6 +136,7 @@ class Monitor:
         self._cap_said = False                      # a receiver worse than guard takes its word for: likewise,
         self._cap_run = 0                           # once it has said so CAP_FIXES fixes in a row
         self._estimate_owed: tuple[int, int] | None = None   # (t_us, gnss_index) of the alarm's epoch
+        self._v_fixed: tuple[int, np.ndarray] | None = None   # (t_us, velocity east-north) after the last fix
 
     @property
     def excluded(self) -> dict[Sensor, int]:
@@ -179,6 +182,7 @@ class Monitor:
             if back_to is not None:
                 self._coast_from = back_to
             self.drift.restart()
+            self._v_fixed = None
             self.judge.rewind_epochs = 0
             # what the rewind left may already be more than the other sensors can hold (GNSS alone, where
             # nothing else holds the position, or a long rewind in the air): then the alarm epoch's own
@@ -264,6 +268,7 @@ class Monitor:
             return events + self._reinitialise(fix.t_us, f"the filter diverged ({why})") + self._initialise(fix)
         ekf, history = self.ekf, self.history
         self._fix, self._fix_en = fix, self.frame.to_en(fix.lat_deg, fix.lon_deg)
+        accel = self._accel_since_fix()
         # the state's own time, which a fix stamped before the last IMU sample is not: the rewind
         # re-runs the IMU fusions after it, and only those
         history.epoch(self.t_us, ekf.x, ekf.P)
@@ -276,18 +281,31 @@ class Monitor:
         if delayed:                 # the position's correction, carried to the state the velocity is tested on
             xd = xd + state_minus(ekf.x, before)
         if self.cfg.filter.use_gnss_velocity and fix.vel_n_mps is not None:
-            aid = self.gnss_aid.velocity(fix, xd)
-            self.witnesses.add_course(fix, xd, ekf.P[TH, TH], self.ground, math.sqrt(aid.R[0, 0]))
+            aid = self.gnss_aid.velocity(fix, xd, accel, bool(self.ground))
+            self.witnesses.add_course(fix, xd, ekf.P[TH, TH], self.ground, across_track(aid.R, fix))
             events += self._measure(Sensor.GNSS_VEL, fix.t_us, aid)
         self._probe(fix)
         if delayed:                 # the correction applies to the stored states too: the next fix sees it
             history.shift(state_minus(ekf.x, before))
         events += self.fit.check(fix.t_us)
+        self._v_fixed = (self.t_us, gnss_velocity_model(ekf.x)[0])
         if self.judge.rewind_epochs:    # this epoch raised an alarm that rewinds: its estimate comes after that
             self._estimate_owed = (fix.t_us, self.gnss_index)
         else:
             events.append(self._estimate(fix.t_us, self.gnss_index))
         return events
+
+    def _accel_since_fix(self) -> np.ndarray | None:
+        """The mean horizontal acceleration (east, north) since the last fix: the filter's velocity change
+        as the IMU carried it, no fix fused between, before this one is (what a receiver's latency shows,
+        GnssAiding.latency_spread). None after a start, a rewind or a gap of over MAX_FIX_INTERVAL_S."""
+        if self._v_fixed is None:
+            return None
+        t0, v0 = self._v_fixed
+        dt = (self.t_us - t0) / 1e6
+        if not 0.0 < dt <= MAX_FIX_INTERVAL_S:
+            return None
+        return (gnss_velocity_model(self.ekf.x)[0] - v0) / dt
 
     def _estimate(self, t_us: int, gnss_index: int) -> Estimate:
         x, f = self.ekf.x, self.frame

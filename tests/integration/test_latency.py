@@ -1,9 +1,11 @@
-"""A receiver that reports late: the simulator's GNSS latency and the filter's `gnss_delay_s`.
+"""A receiver that reports late: the simulator's GNSS latency, the filter's `gnss_delay_s` and the
+latency's uncertainty `gnss_latency_sigma_air_s`.
 
 A real receiver's fix shows the vehicle as it was 50 to 200 ms before its time stamp. In a turn the
 velocity has rotated since, and on a speed change it has grown: a filter that compares the fix with
 its current state reads the lag as an attack. With the latency modelled, the same drive is as quiet
-as a receiver without latency, and a step is still caught at once.
+as a receiver without latency, and a step is still caught at once. An air vehicle, whose latency
+nobody told guard, is held by the latency's uncertainty along the acceleration, on by default.
 """
 
 import dataclasses
@@ -56,6 +58,34 @@ def test_a_modelled_latency_is_quiet_and_the_step_still_caught(lagged_runs):
         first = alarms[0]
         assert first["gnss_index"] >= k0, f"{tlog.name}: false alarm {first}"
         assert first["gnss_index"] <= k0 + 1 and (first["sensor"], first["channel"]) == ("gnss_pos", "north")
+
+
+def air(latency_sigma_s: float | None = None):
+    table: dict = {"monitor": {"vehicle": "air"}}
+    if latency_sigma_s is not None:
+        table["filter"] = {"gnss_latency_sigma_air_s": latency_sigma_s}
+    return parse(table, "test")
+
+
+def test_an_air_vehicle_holds_an_unknown_latency_by_default(lagged_runs):
+    """The same drives flown as an air vehicle, the latency not configured: without its uncertainty
+    the turns raise GNSS velocity alarms; with the default's (0.15 s along the acceleration) none
+    comes before the step, which is caught within a sample."""
+    for tlog, k0 in lagged_runs:
+        bare = replay(str(tlog), air(0.0))["alarms"]
+        assert any(a["gnss_index"] < k0 and a["sensor"] == "gnss_vel" for a in bare), f"{tlog.name}: no bite"
+        alarms = replay(str(tlog), air())["alarms"]
+        assert alarms, f"{tlog.name}: the step was missed"
+        first = alarms[0]
+        assert first["gnss_index"] >= k0, f"{tlog.name}: false alarm {first}"
+        assert first["gnss_index"] <= k0 + 1 and (first["sensor"], first["channel"]) == ("gnss_pos", "north")
+
+
+@pytest.mark.parametrize("key", ["gnss_latency_sigma_s", "gnss_latency_sigma_air_s"])
+@pytest.mark.parametrize("value", ["slow", -0.1, 1.5])
+def test_a_bad_latency_sigma_is_named(key, value):
+    with pytest.raises(ConfigError, match=f"filter: {key}|filter.{key}"):
+        parse({"filter": {key: value}}, "test")
 
 
 @pytest.mark.parametrize("value", ["fast", -0.1, 2.0])

@@ -5,7 +5,9 @@ Three ways in:
   same samples as DroneCAN frames; a CanSource opened first gets every frame queued (the virtual bus
   keeps an unbounded queue per receiver), and is drained only after the whole drive was published,
   long after its transfer timeout and silence timeout (both on the monotonic clock) have run out.
-  The tlog goes through `replay()`, the frames through a `Monitor` with the default config.
+  The tlog goes through `replay()`, the frames through a `Monitor`, both told the vehicle is a ground
+  one: the tlog's HEARTBEAT says so, DroneCAN has no way to (`monitor.vehicle = "auto"` takes a
+  vehicle it hears no HEARTBEAT from as an air vehicle, whose model differs).
 - Between two processes, `guard sim --can` and `guard run --connect can:udp_multicast:...`, inside a
   network namespace made for the test (so no multicast leaves the machine): needs root, `ip` and
   msgpack, else skipped.
@@ -34,7 +36,7 @@ from pathlib import Path
 import pytest
 
 from guard.sources.can import CanSource
-from guard.config import Config
+from guard.config import parse
 from guard.core.monitor import Monitor
 from guard.sources.tlog import TlogReader
 from guard.model.events import Alarm
@@ -48,6 +50,7 @@ ROOT = Path(__file__).resolve().parents[2]
 # Not gyro_bias: its first alarm (mag yaw, on a slowly growing statistic) comes 1-2 GNSS samples apart on
 # the two paths, the quantisation of the IMU differing (MAVLink integers, DroneCAN float16).
 CASES = [("paper", 1), ("paper", 2), ("paper", 3), ("accel_bias", 1)]
+GROUND = parse({"monitor": {"vehicle": "ground"}}, "test")      # the simulator drives a car
 QUIET_S = 0.2           # a poll that waits this long for nothing: the bus's queue is empty
 
 # --- one process, virtual bus -----------------------------------------------------------------------------
@@ -82,9 +85,9 @@ def both_paths(request, tmp_path_factory):
         # the day the tlog says it was recorded, as its replay takes it (the magnetic declination's)
         with TlogReader(str(tlog)) as reader:
             date = reader.date
-        alarms, gnss_t_us = drain(source, Monitor(Config().monitor, record_tests=False, date=date))
+        alarms, gnss_t_us = drain(source, Monitor(GROUND.monitor, record_tests=False, date=date))
     return {"alarms": alarms, "gnss_t_us": gnss_t_us, "stats": source.stats, "messages": source.messages,
-            "report": replay(str(tlog)), "tlog_gnss_t_us": truth["trajectory"]["t_usec"]}
+            "report": replay(str(tlog), GROUND), "tlog_gnss_t_us": truth["trajectory"]["t_usec"]}
 
 
 def test_late_drain_decodes_every_transfer_and_alarms_alike(both_paths):

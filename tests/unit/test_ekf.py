@@ -484,15 +484,49 @@ def test_mag_offset_per_turn_grows_b_psi_with_the_angle_turned_only():
     assert held.P[BM, BM] == 0.0
 
 
-def test_gnss_latency_sigma_widens_the_velocity_test_by_the_acceleration():
-    """gnss_latency_sigma_s: (sigma |a|)^2 joins the velocity's R, |a| the state's horizontal
-    acceleration; the position's R and an unaccelerated vehicle's are untouched."""
+def test_gnss_latency_widens_the_velocity_test_along_the_acceleration_only():
+    """A receiver's latency known to sigma_L only puts a fix's velocity up to sigma_L |a| behind, along
+    the acceleration a since the last fix: R gains sigma_L^2 a a^T, the variance across a and the
+    position's R untouched, and nothing without an acceleration or on the first fix."""
     from guard.core.aiding.gnss import GnssAiding
     from guard.model.samples import GnssFix
     fix = GnssFix(0, True, 0.0, 0.0, 0.0, 1.0, 2.0, 1.0, 0.2)
     x = np.zeros(N_STATES)
-    x[AX], x[AY] = 3.0, 4.0
-    off, on = GnssAiding(FilterConfig()), GnssAiding(FilterConfig(gnss_latency_sigma_s=0.2))
-    assert on.velocity(fix, x).R[0, 0] == pytest.approx(off.velocity(fix, x).R[0, 0] + (0.2 * 5.0) ** 2)
+    a = np.array([3.0, 4.0])                   # east, north: |a| = 5
+    off = GnssAiding(FilterConfig(gnss_latency_sigma_air_s=0.0))
+    on = GnssAiding(FilterConfig(gnss_latency_sigma_air_s=0.2))
+    R0, R1 = off.velocity(fix, x, a).R, on.velocity(fix, x, a).R
+    u, n = a / 5.0, np.array([-4.0, 3.0]) / 5.0
+    assert u @ R1 @ u == pytest.approx(u @ R0 @ u + (0.2 * 5.0) ** 2)
+    assert n @ R1 @ n == pytest.approx(n @ R0 @ n)
     assert on.position(fix, (0.0, 0.0), x).R[0, 0] == off.position(fix, (0.0, 0.0), x).R[0, 0]
-    assert on.velocity(fix, np.zeros(N_STATES)).R[0, 0] == off.velocity(fix, np.zeros(N_STATES)).R[0, 0]
+    assert np.array_equal(on.velocity(fix, x, np.zeros(2)).R, R0)
+    assert np.array_equal(on.velocity(fix, x, None).R, R0)
+
+
+def test_gnss_latency_on_wheels_is_its_own_key_off_by_default():
+    from guard.core.aiding.gnss import GnssAiding
+    from guard.model.samples import GnssFix
+    fix = GnssFix(0, True, 0.0, 0.0, 0.0, 0.0, 10.0, 1.0, 0.2)
+    x, a = np.zeros(N_STATES), np.array([0.0, 3.0])      # a turn to the north at 10 m/s east
+    default = GnssAiding(FilterConfig())
+    assert np.array_equal(default.velocity(fix, x, a, ground=True).R, default.velocity(fix, x, None, ground=True).R)
+    assert default.velocity(fix, x, a).R[1, 1] > default.velocity(fix, x, a, ground=True).R[1, 1]   # the air key
+    on = GnssAiding(FilterConfig(gnss_latency_sigma_s=0.2))
+    assert on.velocity(fix, x, a, ground=True).R[1, 1] == pytest.approx(
+        default.velocity(fix, x, a, ground=True).R[1, 1] + (0.2 * 3.0) ** 2)
+
+
+def test_the_course_witness_takes_the_velocity_noise_across_the_track():
+    """The course turns with the velocity's noise across the track: a latency along a (a speed change)
+    leaves it, one across (a turn) widens it."""
+    from guard.core.aiding.gnss import across_track
+    from guard.model.samples import GnssFix
+    east = GnssFix(0, True, 0.0, 0.0, 0.0, 0.0, 10.0, 1.0, 0.2)      # moving east
+    R = np.diag([0.04 + 0.25, 0.04])                                   # the latency along east
+    assert across_track(R, east) == pytest.approx(0.2)
+    assert across_track(np.diag([0.04, 0.04 + 0.25]), east) == pytest.approx(math.sqrt(0.29))
+    still = GnssFix(0, True, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.2)
+    assert across_track(R, still) == pytest.approx(math.sqrt(0.29))
+
+

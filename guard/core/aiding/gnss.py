@@ -2,9 +2,9 @@
 
     position  z = (e, n) of the fix in the local frame,  h(x) = (x, y),  H = H_POS
     velocity  z = (v_e, v_n),  h(x) = R(theta) (v_x, v_y),  H its Jacobian (gnss_velocity_model)
-R is diagonal, from the receiver's own accuracy figures where it sends them (as EKF2 does), bounded
-below by the configured floors and above by ACC_CAP times them (a receiver, or a spoofer, that
-claims a huge error would otherwise blind every test):
+R is diagonal (but for the latency's part below), from the receiver's own accuracy figures where it
+sends them (as EKF2 does), bounded below by the configured floors and above by ACC_CAP times them (a
+receiver, or a spoofer, that claims a huge error would otherwise blind every test):
     position  sigma = max(gnss_pos_sigma_m, gnss_pos_acc_fraction * h_acc): h_acc counts the slow,
               correlated error too, which the filter follows (q_pos_m); the innovation sees the
               epoch-to-epoch part, about 0.4 of it on u-blox receivers
@@ -14,6 +14,9 @@ unit of the fix's HDOP where it gives one (an older receiver reports its geometr
 at HDOP 1, 0.5 m; the Erle PXF's receivers flew at HDOP 1.3 to 2, their position wandering against
 their own velocity by a metre), else gnss_pos_unreported_m (real receivers' levels, as EKF3's
 defaults, not the simulator's).
+The velocity's R also holds the receiver's latency, as far as it is unknown (latency_spread): on the
+47 real flights of the README the GNSS velocity innovations grow with the acceleration, more along
+it than across it, as a fix 0.05 to 0.25 s late would make them on the copters that ran inertially.
 """
 
 from __future__ import annotations
@@ -23,7 +26,7 @@ import math
 import numpy as np
 
 from guard.core.aiding import Aid
-from guard.core.ekf import AX, AY, N_STATES, TH, VX, VY, X, Y, FilterConfig
+from guard.core.ekf import N_STATES, TH, VX, VY, X, Y, FilterConfig
 from guard.model.events import Alarm
 from guard.model.samples import GnssFix
 from guard.model.sensors import Sensor
@@ -113,12 +116,37 @@ class GnssAiding:
         # R: the measurement noise covariance
         return Aid(np.array([e, n]), x[:2].copy(), H_POS, np.eye(2) * self.sigma_pos(fix) ** 2)
 
-    def velocity(self, fix: GnssFix, x: np.ndarray) -> Aid:
+    def velocity(self, fix: GnssFix, x: np.ndarray, accel_en: np.ndarray | None = None,
+                 ground: bool = False) -> Aid:
+        """accel_en: the vehicle's mean horizontal acceleration (east, north) since the last fix
+        (guard.core.monitor), what a late fix's velocity lags by (latency_spread)."""
         hx, H = gnss_velocity_model(x)
-        # R = (sigma_v^2 + (sigma_L |a|)^2) I: a latency known to within sigma_L (gnss_latency_sigma_s, off by
-        # default) puts a fix's velocity up to that long behind the state's while the vehicle accelerates by |a|
-        lag = self.f.gnss_latency_sigma_s * math.hypot(x[AX], x[AY])
-        return Aid(np.array([fix.vel_e_mps, fix.vel_n_mps]), hx, H, np.eye(2) * (self.sigma_vel(fix) ** 2 + lag * lag))
+        lag = self.latency_spread(accel_en, ground)
+        return Aid(np.array([fix.vel_e_mps, fix.vel_n_mps]), hx, H,
+                   np.eye(2) * self.sigma_vel(fix) ** 2 + np.outer(lag, lag))
+
+    def latency_spread(self, accel_en: np.ndarray | None, ground: bool) -> np.ndarray:
+        """sigma_L a (east, north): how far a fix's velocity may lag the state's when its receiver's
+        latency is known to within sigma_L only (gnss_latency_sigma_air_s; gnss_latency_sigma_s on
+        wheels, off by default) and the vehicle accelerated by a since the last fix. A lag L puts the
+        fix's velocity at v - L a: along the acceleration only, so R gains sigma_L^2 a a^T and the test
+        across it keeps its edge. a is the mean since the last fix of the filter's own velocity before
+        this fix, as the IMU carried it (a vibration averages out, the fix's noise is not in it; on GNSS
+        alone the filter's acceleration learnt from the fixes before). None (the first fix, a gap): 0."""
+        sigma = self.f.gnss_latency_sigma_s if ground else self.f.gnss_latency_sigma_air_s
+        if sigma <= 0.0 or accel_en is None:
+            return np.zeros(2)
+        return sigma * np.asarray(accel_en, dtype=float)
+
+
+def across_track(R: np.ndarray, fix: GnssFix) -> float:
+    """The 1-sigma noise of a fix's velocity across its track (what turns its course), from its R:
+    sqrt(u^T R u), u the unit vector across the velocity (the larger axis of R when standing still)."""
+    speed = math.hypot(fix.vel_e_mps, fix.vel_n_mps)
+    if speed <= 0.0:
+        return math.sqrt(float(np.max(np.linalg.eigvalsh(R))))
+    u = np.array([-fix.vel_n_mps, fix.vel_e_mps]) / speed
+    return math.sqrt(float(u @ R @ u))
 
 
 class FreezeWatch:
