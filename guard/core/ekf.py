@@ -91,11 +91,11 @@ class FilterConfig:
                                       # fix's velocity is the vehicle's of up to this long before it, so this^2 a a^T,
                                       # a the mean horizontal acceleration since the last fix, joins its R
                                       # (guard.core.aiding.gnss). Off on wheels: a car's turn is all sideways
-                                      # acceleration, and at 0.15 the simulator's cars caught their sideways
-                                      # accelerometer biases at 4.3 to 4.9 s instead of 3.2 to 4.0, on 2 of the
-                                      # second family's 8 vehicles not at all; no real ground log asked for it
+                                      # acceleration, and at 0.15 the second family's vehicles caught their
+                                      # sideways accelerometer biases in 1 of 8 against 3 (the simulator's cars at
+                                      # 3.3 to 4.1 s against 3.2 to 4.0); no real ground log asked for it
     gnss_latency_sigma_air_s: float = 0.15   # an air vehicle's: real copters' GNSS velocity lags their IMU by 0.05
-                                      # to 0.25 s (README, "The receiver's latency, unknown")
+                                      # to 0.35 s (README, "The receiver's latency, unknown")
     gnss_delay_s: float = 0.0         # the receiver's latency: a fix is compared with the state this long before it
     gyro_sigma_radps: float = 0.01    # the floor: the gyro's own noise, measured from its samples, when larger
     accel_sigma_mps2: float = 0.15    # likewise (vibration: 0.25 to 0.66 m/s^2 in two real copter flights at 25 Hz)

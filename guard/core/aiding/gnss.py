@@ -16,7 +16,7 @@ their own velocity by a metre), else gnss_pos_unreported_m (real receivers' leve
 defaults, not the simulator's).
 The velocity's R also holds the receiver's latency, as far as it is unknown (latency_spread): on the
 47 real flights of the README the GNSS velocity innovations grow with the acceleration, more along
-it than across it, as a fix 0.05 to 0.25 s late would make them on the copters that ran inertially.
+it than across it, as a fix 0.05 to 0.35 s late would make them on the copters that ran inertially.
 """
 
 from __future__ import annotations
