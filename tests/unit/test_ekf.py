@@ -484,37 +484,63 @@ def test_mag_offset_per_turn_grows_b_psi_with_the_angle_turned_only():
     assert held.P[BM, BM] == 0.0
 
 
-def test_gnss_latency_widens_the_velocity_test_along_the_acceleration_only():
+def test_gnss_latency_widens_the_velocity_variance_along_the_acceleration_only():
     """A receiver's latency known to sigma_L only puts a fix's velocity up to sigma_L |a| behind, along
-    the acceleration a since the last fix: R gains sigma_L^2 a a^T, the variance across a and the
+    the acceleration a since the last fix: R gains sigma_L^2 a a^T, its variance across a and the
     position's R untouched, and nothing without an acceleration or on the first fix."""
     from guard.core.aiding.gnss import GnssAiding
     from guard.model.samples import GnssFix
     fix = GnssFix(0, True, 0.0, 0.0, 0.0, 1.0, 2.0, 1.0, 0.2)
     x = np.zeros(N_STATES)
     a = np.array([3.0, 4.0])                   # east, north: |a| = 5
-    off = GnssAiding(FilterConfig(gnss_latency_sigma_air_s=0.0))
+    off = GnssAiding(FilterConfig())
     on = GnssAiding(FilterConfig(gnss_latency_sigma_air_s=0.2))
-    R0, R1 = off.velocity(fix, x, a).R, on.velocity(fix, x, a).R
+    R0, R1 = off.velocity(fix, x, a, False).R, on.velocity(fix, x, a, False).R
     u, n = a / 5.0, np.array([-4.0, 3.0]) / 5.0
     assert u @ R1 @ u == pytest.approx(u @ R0 @ u + (0.2 * 5.0) ** 2)
     assert n @ R1 @ n == pytest.approx(n @ R0 @ n)
     assert on.position(fix, (0.0, 0.0), x).R[0, 0] == off.position(fix, (0.0, 0.0), x).R[0, 0]
-    assert np.array_equal(on.velocity(fix, x, np.zeros(2)).R, R0)
-    assert np.array_equal(on.velocity(fix, x, None).R, R0)
+    assert np.array_equal(on.velocity(fix, x, np.zeros(2), False).R, R0)
+    assert np.array_equal(on.velocity(fix, x, None, False).R, R0)
 
 
-def test_gnss_latency_on_wheels_is_its_own_key_off_by_default():
+def test_gnss_latency_is_off_by_default_and_each_vehicle_reads_its_own_key():
     from guard.core.aiding.gnss import GnssAiding
     from guard.model.samples import GnssFix
     fix = GnssFix(0, True, 0.0, 0.0, 0.0, 0.0, 10.0, 1.0, 0.2)
     x, a = np.zeros(N_STATES), np.array([0.0, 3.0])      # a turn to the north at 10 m/s east
     default = GnssAiding(FilterConfig())
-    assert np.array_equal(default.velocity(fix, x, a, ground=True).R, default.velocity(fix, x, None, ground=True).R)
-    assert default.velocity(fix, x, a).R[1, 1] > default.velocity(fix, x, a, ground=True).R[1, 1]   # the air key
-    on = GnssAiding(FilterConfig(gnss_latency_sigma_s=0.2))
-    assert on.velocity(fix, x, a, ground=True).R[1, 1] == pytest.approx(
-        default.velocity(fix, x, a, ground=True).R[1, 1] + (0.2 * 3.0) ** 2)
+    for ground in (False, True):
+        assert np.array_equal(default.velocity(fix, x, a, ground).R, default.velocity(fix, x, None, ground).R)
+    base = default.velocity(fix, x, None, True).R[1, 1]
+    wheels, air = GnssAiding(FilterConfig(gnss_latency_sigma_s=0.2)), GnssAiding(FilterConfig(gnss_latency_sigma_air_s=0.2))
+    assert wheels.velocity(fix, x, a, True).R[1, 1] == pytest.approx(base + (0.2 * 3.0) ** 2)
+    assert wheels.velocity(fix, x, a, False).R[1, 1] == pytest.approx(base)
+    assert air.velocity(fix, x, a, False).R[1, 1] == pytest.approx(base + (0.2 * 3.0) ** 2)
+    assert air.velocity(fix, x, a, True).R[1, 1] == pytest.approx(base)
+
+
+def test_fuse_takes_a_full_measurement_covariance_whole():
+    """A GNSS velocity whose R holds a latency along a diagonal acceleration: the Joseph update with
+    the whole R, as filterpy's, not with its diagonal alone."""
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(N_STATES, N_STATES))
+    P0 = A @ A.T / N_STATES + np.eye(N_STATES) * 0.1
+    x0 = rng.normal(size=N_STATES) * 0.1
+    H = np.zeros((2, N_STATES)); H[0, VX] = H[1, VY] = 1.0
+    lag = 0.15 * np.array([2.0, 2.0])
+    R = np.eye(2) * 0.06 ** 2 + np.outer(lag, lag)
+    ekf = NavEKF(FilterConfig(), x0.copy())
+    ekf.P = P0.copy()
+    z = H @ x0 + np.array([0.3, -0.1])
+    r, S, PHT = ekf.innovation(z, H @ ekf.x, H, R)
+    ekf.fuse(r, S, H, R, PHT)
+    K = P0 @ H.T @ np.linalg.inv(H @ P0 @ H.T + R)
+    I_KH = np.eye(N_STATES) - K @ H
+    expected = I_KH @ P0 @ I_KH.T + K @ R @ K.T
+    assert np.allclose(ekf.P, expected, atol=1e-12)
+    diagonal_only = I_KH @ P0 @ I_KH.T + (K * R.diagonal()) @ K.T
+    assert not np.allclose(ekf.P, diagonal_only, atol=1e-6)
 
 
 def test_the_course_witness_takes_the_velocity_noise_across_the_track():
@@ -528,5 +554,3 @@ def test_the_course_witness_takes_the_velocity_noise_across_the_track():
     assert across_track(np.diag([0.04, 0.04 + 0.25]), east) == pytest.approx(math.sqrt(0.29))
     still = GnssFix(0, True, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.2)
     assert across_track(R, still) == pytest.approx(math.sqrt(0.29))
-
-

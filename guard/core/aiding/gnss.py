@@ -2,7 +2,7 @@
 
     position  z = (e, n) of the fix in the local frame,  h(x) = (x, y),  H = H_POS
     velocity  z = (v_e, v_n),  h(x) = R(theta) (v_x, v_y),  H its Jacobian (gnss_velocity_model)
-R is diagonal (but for the latency's part below), from the receiver's own accuracy figures where it
+R is diagonal (but for the latency's part below, when set), from the receiver's own accuracy figures where it
 sends them (as EKF2 does), bounded below by the configured floors and above by ACC_CAP times them (a
 receiver, or a spoofer, that claims a huge error would otherwise blind every test):
     position  sigma = max(gnss_pos_sigma_m, gnss_pos_acc_fraction * h_acc): h_acc counts the slow,
@@ -14,9 +14,10 @@ unit of the fix's HDOP where it gives one (an older receiver reports its geometr
 at HDOP 1, 0.5 m; the Erle PXF's receivers flew at HDOP 1.3 to 2, their position wandering against
 their own velocity by a metre), else gnss_pos_unreported_m (real receivers' levels, as EKF3's
 defaults, not the simulator's).
-The velocity's R also holds the receiver's latency, as far as it is unknown (latency_spread): on the
-47 real flights of the README the GNSS velocity innovations grow with the acceleration, more along
-it than across it, as a fix 0.05 to 0.35 s late would make them on the copters that ran inertially.
+The velocity's R can also hold the receiver's latency, as far as it is unknown (latency_spread, off
+by default): on the 47 real flights of the README the GNSS velocity innovations grow with the
+acceleration, more along it than across it, as a fix 0.05 to 0.35 s late would make them on the
+copters that ran inertially.
 """
 
 from __future__ import annotations
@@ -116,8 +117,7 @@ class GnssAiding:
         # R: the measurement noise covariance
         return Aid(np.array([e, n]), x[:2].copy(), H_POS, np.eye(2) * self.sigma_pos(fix) ** 2)
 
-    def velocity(self, fix: GnssFix, x: np.ndarray, accel_en: np.ndarray | None = None,
-                 ground: bool = False) -> Aid:
+    def velocity(self, fix: GnssFix, x: np.ndarray, accel_en: np.ndarray | None, ground: bool) -> Aid:
         """accel_en: the vehicle's mean horizontal acceleration (east, north) since the last fix
         (guard.core.monitor), what a late fix's velocity lags by (latency_spread)."""
         hx, H = gnss_velocity_model(x)
@@ -127,12 +127,13 @@ class GnssAiding:
 
     def latency_spread(self, accel_en: np.ndarray | None, ground: bool) -> np.ndarray:
         """sigma_L a (east, north): how far a fix's velocity may lag the state's when its receiver's
-        latency is known to within sigma_L only (gnss_latency_sigma_air_s; gnss_latency_sigma_s on
-        wheels, off by default) and the vehicle accelerated by a since the last fix. A lag L puts the
-        fix's velocity at v - L a: along the acceleration only, so R gains sigma_L^2 a a^T and the test
-        across it keeps its edge. a is the mean since the last fix of the filter's own velocity before
-        this fix, as the IMU carried it (a vibration averages out, the fix's noise is not in it; on GNSS
-        alone the filter's acceleration learnt from the fixes before). None (the first fix, a gap): 0."""
+        latency is known to within sigma_L only (gnss_latency_sigma_air_s, gnss_latency_sigma_s on
+        wheels; both off by default) and the vehicle accelerated by a since the last fix. A lag L puts
+        the fix's velocity at v - L a, along the acceleration: R gains sigma_L^2 a a^T, not diagonal
+        (NavEKF.fuse takes it whole). The detector tests east and north apart, each on its own
+        variance, so an acceleration between the two widens both. a is the mean since the last fix of
+        the filter's own velocity before this fix, as the IMU carried it (the fix's noise is not in
+        it; on GNSS alone the monitor passes None). None (the first fix, a gap): 0."""
         sigma = self.f.gnss_latency_sigma_s if ground else self.f.gnss_latency_sigma_air_s
         if sigma <= 0.0 or accel_en is None:
             return np.zeros(2)
