@@ -265,6 +265,6 @@ class NavEKF:
         self.x += K @ r
         self.x[TH] = math.remainder(self.x[TH], math.tau)
         I_KH = self._I - K @ H
-        diagonal = R.shape[0] == 1 or not np.any(R[~np.eye(R.shape[0], dtype=bool)])
+        diagonal = np.count_nonzero(R) <= R.shape[0]        # its variances are never 0: nothing off them
         KRKT = (K * R.diagonal()) @ K.T if diagonal else K @ R @ K.T
         self.P = I_KH @ self.P @ I_KH.T + KRKT

@@ -268,7 +268,9 @@ class Monitor:
             return events + self._reinitialise(fix.t_us, f"the filter diverged ({why})") + self._initialise(fix)
         ekf, history = self.ekf, self.history
         self._fix, self._fix_en = fix, self.frame.to_en(fix.lat_deg, fix.lon_deg)
-        accel = self._accel_since_fix() if self.inertial else None   # on GNSS alone, no IMU for a fix to lag
+        # the acceleration a late fix lags by, where its latency's uncertainty is set (GnssAiding.latency_spread);
+        # on GNSS alone no IMU for a fix to lag
+        accel = self._accel_since_fix() if self.inertial and self.gnss_aid.latency_sigma(bool(self.ground)) else None
         # the state's own time, which a fix stamped before the last IMU sample is not: the rewind
         # re-runs the IMU fusions after it, and only those
         history.epoch(self.t_us, ekf.x, ekf.P)

@@ -125,6 +125,10 @@ class GnssAiding:
         return Aid(np.array([fix.vel_e_mps, fix.vel_n_mps]), hx, H,
                    np.eye(2) * self.sigma_vel(fix) ** 2 + np.outer(lag, lag))
 
+    def latency_sigma(self, ground: bool) -> float:
+        """sigma_L, s: how far the receiver's latency is unknown on this vehicle (0: off)."""
+        return self.f.gnss_latency_sigma_s if ground else self.f.gnss_latency_sigma_air_s
+
     def latency_spread(self, accel_en: np.ndarray | None, ground: bool) -> np.ndarray:
         """sigma_L a (east, north): how far a fix's velocity may lag the state's when its receiver's
         latency is known to within sigma_L only (gnss_latency_sigma_air_s, gnss_latency_sigma_s on
@@ -134,7 +138,7 @@ class GnssAiding:
         variance, so an acceleration between the two widens both. a is the mean since the last fix of
         the filter's own velocity before this fix, as the IMU carried it (the fix's noise is not in
         it; on GNSS alone the monitor passes None). None (the first fix, a gap): 0."""
-        sigma = self.f.gnss_latency_sigma_s if ground else self.f.gnss_latency_sigma_air_s
+        sigma = self.latency_sigma(ground)
         if sigma <= 0.0 or accel_en is None:
             return np.zeros(2)
         return sigma * np.asarray(accel_en, dtype=float)
