@@ -270,7 +270,8 @@ class Monitor:
         self._fix, self._fix_en = fix, self.frame.to_en(fix.lat_deg, fix.lon_deg)
         # the acceleration a late fix lags by, where its latency's uncertainty is set (GnssAiding.latency_spread);
         # on GNSS alone no IMU for a fix to lag
-        accel = self._accel_since_fix() if self.inertial and self.gnss_aid.latency_sigma(bool(self.ground)) else None
+        lagging = bool(self.inertial) and self.gnss_aid.latency_sigma(bool(self.ground)) > 0.0
+        accel = self._accel_since_fix() if lagging else None
         # the state's own time, which a fix stamped before the last IMU sample is not: the rewind
         # re-runs the IMU fusions after it, and only those
         history.epoch(self.t_us, ekf.x, ekf.P)
@@ -290,7 +291,7 @@ class Monitor:
         if delayed:                 # the correction applies to the stored states too: the next fix sees it
             history.shift(state_minus(ekf.x, before))
         events += self.fit.check(fix.t_us)
-        self._v_fixed = (self.t_us, gnss_velocity_model(ekf.x)[0])
+        self._v_fixed = (self.t_us, gnss_velocity_model(ekf.x)[0]) if lagging else None
         if self.judge.rewind_epochs:    # this epoch raised an alarm that rewinds: its estimate comes after that
             self._estimate_owed = (fix.t_us, self.gnss_index)
         else:
