@@ -11,6 +11,10 @@ from guard_sim import scenario as scenarios
 from guard_sim.scenario import Attack
 
 START_S = 30.0
+# The clean route's third turn starts at 54.3 s: 35 deg/s while slowing from 7 to 5 m/s. An IMU attack
+# that starts there meets the filter while it is manoeuvring (START_S is the tail of the first turn,
+# 6 deg/s at a steady 3 m/s), where a latency's allowance or the wheels' slip widens what it tests.
+TURN_S = 54.5
 EARLY_SAMPLE = 5        # the `early` family's step: at this GNSS sample, after a clean start
 ALL_FAMILIES = ("step", "ramp", "spoof", "freeze", "imu", "early", "clean", "paper")
 SPOOF_PHASE_S = 9.0
@@ -37,6 +41,10 @@ def cases(families: list[str]) -> list[tuple[str, str, tuple[Attack, ...], float
         out.append(("imu", "accel y bias 0.5 m/s2", (Attack("bias", "accel", "y", 0.5, START_S),), 60.0))
         out.append(("imu", "mag x bias 0.05 G", (Attack("bias", "mag", "x", 0.05, START_S),), 60.0))
         out.append(("imu", "mag x ramp 0.01 G/s", (Attack("ramp", "mag", "x", 0.01, START_S),), 60.0))
+        for name, sensor, axis, size in (("gyro z bias 0.05 rad/s", "gyro", "z", 0.05),
+                                         ("accel x bias 0.5 m/s2", "accel", "x", 0.5),
+                                         ("accel y bias 0.5 m/s2", "accel", "y", 0.5)):
+            out.append(("imu", f"{name} in a turn", (Attack("bias", sensor, axis, size, TURN_S),), TURN_S + 30.0))
     if "early" in families:
         out.append(("early", f"step north 5 m at sample {EARLY_SAMPLE}",
                     (Attack("step", "gnss_pos", "north", 5.0, EARLY_SAMPLE / 10.0),), 40.0))
