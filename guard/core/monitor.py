@@ -54,6 +54,7 @@ from guard.model.samples import Attitude, GnssFix, ImuSample, VehicleType
 from guard.model.sensors import CHANNELS, RECEIVER, Sensor
 
 MAX_FIX_INTERVAL_S = 2.0   # s: fixes further apart say nothing of the acceleration between them (a gap)
+KIND_WAIT_S = 10.0     # s of monitoring without the vehicle's type (a HEARTBEAT comes every second): not sent
 CAP_FIXES = 5          # fixes in a row whose receiver calls itself worse than guard takes: then said
 
 
@@ -96,6 +97,8 @@ class Monitor:
         self.gnss_aid = GnssAiding(f)
         self.imu_aid = ImuAiding(f)
         self.ground = self.cfg.vehicle == "ground"
+        self._kind_told = self.cfg.vehicle != "auto"   # the config or the source said ground or air
+        self._kind_wait_from: int | None = None     # the first fix monitored while neither has
         self._receiver = RECEIVER if f.use_gnss_velocity else (Sensor.GNSS_POS,)
         self.skipped: Counter[str] = Counter()
         self.timebase = Timebase(self.cfg.max_gap_s, self.skipped)
@@ -219,6 +222,7 @@ class Monitor:
         return events
 
     def _vehicle(self, v: VehicleType) -> list[Event]:
+        self._kind_told = True
         if self.cfg.vehicle != "auto" or v.ground == self.ground:
             return []
         self.ground = v.ground
@@ -227,6 +231,22 @@ class Monitor:
         what = ("a ground vehicle: its sideways velocity is held at zero" if v.ground
                 else "a vehicle that may move sideways: sideways velocity left free")
         return [Notice(self.t_us or 0, "info", f"the autopilot reports {what}")]
+
+    def _kind_unsaid(self, t_us: int) -> list[Event]:
+        """Said once: `auto` and a source that has not said what the vehicle is (DroneCAN, a log
+        without the autopilot's HEARTBEAT) within KIND_WAIT_S of monitoring. The air model stands:
+        it holds no sideways velocity at zero, so a car is not falsely alarmed but its heading and a
+        sideways accelerometer attack are tested less sharply than "ground" tests them."""
+        if self._kind_told:
+            return []
+        if self._kind_wait_from is None or t_us < self._kind_wait_from:    # a clock set back: wait anew
+            self._kind_wait_from = t_us
+        if t_us - self._kind_wait_from < KIND_WAIT_S * 1e6:
+            return []
+        self._kind_told = True
+        return [Notice(t_us, "warning", f'monitor.vehicle is "auto" and in {KIND_WAIT_S:g} s the source has not '
+                       'said what the vehicle is (no HEARTBEAT from the autopilot): modelled as one that may '
+                       'move sideways; set monitor.vehicle = "ground" for a wheeled vehicle, "air" to say so')]
 
     def _advance(self, t_us: int) -> None:
         if t_us > self.t_us:
@@ -256,6 +276,7 @@ class Monitor:
                                          f"once the receiver reports {START_H_ACC_M:g} m or HDOP {START_HDOP:g}"))
                 return events
             return events + self._initialise(fix)
+        events += self._kind_unsaid(fix.t_us)
         poor = None if self._cap_said else self.gnss_aid.beyond_cap(fix)
         self._cap_run = self._cap_run + 1 if poor else 0
         if poor and self._cap_run >= CAP_FIXES:     # a receiver that says so for a while, not one odd fix

@@ -523,3 +523,24 @@ def test_the_short_memory_sees_a_vibration_at_once_and_not_a_bias_step_or_a_ramp
     # a gap: the jump across it is not a difference, first or second
     rng = np.random.default_rng(1)
     assert fed(list(rng.normal(0.0, 0.03, 50)) + list(3.0 + rng.normal(0.0, 0.03, 10)), gap_at=50) == 0.15
+
+
+@pytest.mark.parametrize("told_at_s", [None, 5.0])
+def test_auto_without_the_vehicle_type_is_said_once(told_at_s):
+    """`monitor.vehicle = "auto"` and a source that never says what the vehicle is (DroneCAN, a log
+    without the autopilot's HEARTBEAT): after 10 s of monitoring a WARNING names the key, once; a
+    HEARTBEAT before then (told_at_s), or a config that names the vehicle, says nothing."""
+    samples = drive(40.0, seed=3)
+    if told_at_s is not None:
+        k = next(i for i, s in enumerate(samples) if s.t_us >= T0_US + int(told_at_s * 1e6))
+        samples = samples[:k] + [VehicleType(ground=False)] + samples[k:]
+    _, events = run(samples, MonitorConfig(declination_deg=0.0))
+    said = [n for n in of(events, Notice) if "monitor.vehicle" in n.text]
+    if told_at_s is None:
+        assert len(said) == 1 and said[0].level == "warning", said
+        assert 10.0 <= (said[0].t_us - T0_US) / 1e6 <= 10.5
+        assert '"ground"' in said[0].text
+    else:
+        assert said == []
+    _, events = run(drive(40.0, seed=3), GROUND)
+    assert [n for n in of(events, Notice) if "monitor.vehicle" in n.text] == []
