@@ -161,7 +161,7 @@ def _tune(args) -> int:
     from guard.runtime.tune import tune, write_profile
     profile, _ = tune(args.logs, load(args.config))
     write_profile(profile, args.out, args.logs)
-    changed = ", ".join(f"{k} = {v:g}" for k, v in profile["filter"].items()) or "nothing"
+    changed = ", ".join(f"{k} = {v:g}" for table in profile.values() for k, v in table.items()) or "nothing"
     print(f"guard tune: {args.out}: {changed}")
     return 0
 

@@ -9,9 +9,10 @@ import tomllib
 
 import pytest
 
-from guard.config import Config, parse
+from guard.config import Config, load, parse
+from guard.core.longrun import F_MAX
 from guard.runtime.replay import replay
-from guard.runtime.tune import tune
+from guard.runtime.tune import tune, write_profile
 from guard_sim import scenario as scn
 from guard_sim.run import run
 from guard_sim.scenario import Attack
@@ -43,6 +44,7 @@ def test_tuned_on_clean_drives_the_held_out_one_is_quiet_and_its_attack_caught(d
     profile, cfg = tune([drives[1], drives[2]], Config(), say=lambda line: None)
     assert profile["filter"]["gnss_delay_s"] == pytest.approx(0.2)
     assert profile["filter"]["slip_rad_per_mps2"] == pytest.approx(SLIP, abs=0.004)
+    assert "monitor" not in profile, "drives alike: one noise level fits them, no widening in flight"
     assert replay(drives[3], cfg)["alarms"] == []
     alarms = replay(drives["attack"], cfg)["alarms"]
     assert alarms and alarms[0]["sensor"] == "gnss_pos" and 0 <= alarms[0]["gnss_index"] - drives["k0"] <= 1, alarms[:2]
@@ -60,3 +62,23 @@ def test_the_cli_writes_a_profile_and_names_a_missing_log(drives, tmp_path):
     p = subprocess.run([sys.executable, "-m", "guard", "tune", str(tmp_path / "absent.bin")],
                        capture_output=True, text=True, cwd=tmp_path)
     assert p.returncode == 1 and p.stderr.strip() == f"guard: error: {tmp_path / 'absent.bin'}: no such file"
+
+
+def test_flights_unlike_one_another_get_the_widening_in_flight(drives, tmp_path):
+    """A third drive whose compass wanders (a copter's motors' field, 1.5 degrees over 3 s) beside two
+    that do not: one noise level fits neither, so the profile lets each test widen in flight by the
+    wander it measures (monitor.max_wander_factor), says why, and names the drive; the profile
+    reads back as a config."""
+    base = scn.load("clean")
+    wandering = dataclasses.replace(base, duration_s=110.0, noise=dataclasses.replace(
+        base.noise, gnss_delay_s=0.2, mag_wander_deg=1.5, mag_wander_tau_s=3.0),
+        route=dataclasses.replace(base.route, sideslip_rad_per_mps2=SLIP, max_yaw_jerk_radps3=2.0))
+    odd = str(tmp_path / "wandering.tlog")
+    run(wandering, 4, tlog=odd)
+    said = []
+    profile, cfg = tune([drives[1], drives[2], odd], Config(), say=said.append)
+    assert profile["monitor"] == {"max_wander_factor": F_MAX} and cfg.monitor.max_wander_factor == F_MAX
+    assert any(line.startswith("wandering.tlog: mag innovations") and "the flights differ" in line for line in said), said
+    out = tmp_path / "vehicle.toml"
+    write_profile(profile, str(out), [drives[1], drives[2], odd])
+    assert load(str(out)).monitor.max_wander_factor == F_MAX
