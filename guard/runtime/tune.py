@@ -16,9 +16,10 @@ when the model fits. From logs without an attack, guard tune fits, in this order
    same logs raised more alarms with the profile than without it);
 3. the compass's offset (`filter.mag_offset_rad`) and, on wheels, their slip (`filter.slip_rad_per_mps2`):
    what the filter learnt, averaged over the logs;
-4. whether the flights differ: if any one log's innovations, on any sensor, pass all the logs'
-   together by more than MARGIN, one noise level does not fit every flight of this vehicle, and
-   the profile lets each test widen in flight by the wander it measures
+4. whether the flights differ: if any one log's innovations, on any sensor, pass the tuned model
+   (a factor over 1) and all the logs' together by more than MARGIN, one noise level does not fit
+   every flight of this vehicle (a sensor well inside its model, such as a gyro held at its floor,
+   differs from flight to flight without that mattering), and the profile lets each test widen in flight by the wander it measures
    (`monitor.max_wander_factor` = guard.core.longrun.F_MAX; learnt slowly and only while every test
    is calm). The cost is said: on a flight that wanders, an attack is caught later by as much. On
    7 held-out real copter flights (README, "Real flights never tuned on") it took the tuned profile
@@ -172,7 +173,7 @@ def tune(logs: list[str], base: Config, say: Callable[[str], None] = print) -> t
     each: list[Innovations] = []
     pooled, reports = measure(logs, cfg, each)
     over = [(f, Path(log).name, sensor) for log, one in zip(logs, each) for sensor in KEYS
-            if (f := one.factor(sensor)) is not None and f > MARGIN * (pooled.factor(sensor) or math.inf)]
+            if (f := one.factor(sensor)) is not None and f > max(1.0, MARGIN * (pooled.factor(sensor) or math.inf))]
     if over and cfg.monitor.max_wander_factor <= 1.0:
         f, name, sensor = max(over)
         say(f"{name}: {sensor} innovations {f:.2f}x the tuned model ({pooled.factor(sensor):.2f}x over all the "
