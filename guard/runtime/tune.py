@@ -130,6 +130,14 @@ def measure(logs: list[str], cfg: Config, each: list | None = None) -> tuple[Inn
     return sink, reports
 
 
+def unlike(logs: list[str], each: list[Innovations], pooled: Innovations) -> list[tuple[float, str, Sensor]]:
+    """(factor, log name, sensor) for each log and sensor whose innovations pass the tuned model (a
+    factor over 1) and all the logs' together (`pooled`) by more than MARGIN: flights that one noise
+    level does not fit."""
+    return [(f, Path(log).name, sensor) for log, one in zip(logs, each) for sensor in KEYS
+            if (f := one.factor(sensor)) is not None and f > max(1.0, MARGIN * (pooled.factor(sensor) or math.inf))]
+
+
 def gnss_z2(sink: Innovations) -> float:
     n = sum(sink.n.get(s, 0) for s in (Sensor.GNSS_POS, Sensor.GNSS_VEL))
     return sum(sink.sum.get(s, 0.0) for s in (Sensor.GNSS_POS, Sensor.GNSS_VEL)) / max(n, 1)
@@ -172,8 +180,7 @@ def tune(logs: list[str], base: Config, say: Callable[[str], None] = print) -> t
     # 4. whether one noise level fits every flight
     each: list[Innovations] = []
     pooled, reports = measure(logs, cfg, each)
-    over = [(f, Path(log).name, sensor) for log, one in zip(logs, each) for sensor in KEYS
-            if (f := one.factor(sensor)) is not None and f > max(1.0, MARGIN * (pooled.factor(sensor) or math.inf))]
+    over = unlike(logs, each, pooled)
     if over and cfg.monitor.max_wander_factor <= 1.0:
         f, name, sensor = max(over)
         say(f"{name}: {sensor} innovations {f:.2f}x the tuned model ({pooled.factor(sensor):.2f}x over all the "
