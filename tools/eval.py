@@ -20,7 +20,8 @@ Families (each a list of cases, each case run over --seeds seeds, attack at t = 
             from 30 s + 9 s x (seed mod 10): along the track or across it, in a turn or a straight
   freeze    the GNSS fix stops updating while the vehicle moves
   imu       gyro z bias 0.05 rad/s; accelerometer x and y bias 0.5 m/s^2; magnetometer x bias 0.05 G and
-            x ramp 0.01 G/s (a heading drift, the gyro bias's look-alike: isolation must tell them apart)
+            x ramp 0.01 G/s (a heading drift, the gyro bias's look-alike: isolation must tell them apart);
+            the gyro and accelerometer biases again from 54.5 s, in a turn
   early     a 5 m GNSS north step at GPS sample 5, after a clean start
   clean     10-minute clean drives with turns and speed changes, and others with three 5 s GNSS dropouts
   paper     the paper's scenario (a straight drive, 10 Hz, 10 m on GNSS north from sample 400), not in the default

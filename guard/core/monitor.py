@@ -217,6 +217,7 @@ class Monitor:
         last_alarm = self.judge.last_alarm
         self._reset()
         self.timebase.reset()
+        self._kind_wait_from = None                 # 10 s of monitoring by the new clock
         self.health.latched |= kept
         self.judge.last_alarm = {s: v for s, v in last_alarm.items() if s in kept}   # a standing alarm goes on
         return events

@@ -65,20 +65,22 @@ def test_the_cli_writes_a_profile_and_names_a_missing_log(drives, tmp_path):
 
 
 def test_flights_unlike_one_another_get_the_widening_in_flight(drives, tmp_path):
-    """A third drive whose compass wanders (a copter's motors' field, 1.5 degrees over 3 s) beside two
-    that do not: one noise level fits neither, so the profile lets each test widen in flight by the
-    wander it measures (monitor.max_wander_factor), says why, and names the drive; the profile
-    reads back as a config."""
+    """A third drive whose compass wanders (a copter's motors' field, 3 degrees over 3 s) beside two
+    that do not: the noise fitted to the three leaves it at its magnetometer's threshold, so the
+    profile lets each test widen in flight by the wander it measures (monitor.max_wander_factor),
+    says why, and names the drive; the profile reads back as a config. (At 1.5 degrees the fitted
+    noise holds it, 0.38 of its threshold, and nothing is added.)"""
     base = scn.load("clean")
     wandering = dataclasses.replace(base, duration_s=110.0, noise=dataclasses.replace(
-        base.noise, gnss_delay_s=0.2, mag_wander_deg=1.5, mag_wander_tau_s=3.0),
+        base.noise, gnss_delay_s=0.2, mag_wander_deg=3.0, mag_wander_tau_s=3.0),
         route=dataclasses.replace(base.route, sideslip_rad_per_mps2=SLIP, max_yaw_jerk_radps3=2.0))
     odd = str(tmp_path / "wandering.tlog")
     run(wandering, 4, tlog=odd)
     said = []
     profile, cfg = tune([drives[1], drives[2], odd], Config(), say=said.append)
     assert profile["monitor"] == {"max_wander_factor": F_MAX} and cfg.monitor.max_wander_factor == F_MAX
-    assert any(line.startswith("wandering.tlog: mag innovations") and "the flights differ" in line for line in said), said
+    assert any(line.startswith("wandering.tlog: mag innovations") and "does not fit every flight" in line
+               for line in said), said
     out = tmp_path / "vehicle.toml"
     write_profile(profile, str(out), [drives[1], drives[2], odd])
     assert load(str(out)).monitor.max_wander_factor == F_MAX

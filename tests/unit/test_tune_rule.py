@@ -1,11 +1,11 @@
-"""guard tune's rule for flights unlike one another (guard.runtime.tune.unlike), on innovations
-whose spread is set by hand: a log is flagged only where it passes both the tuned model and all the
-logs together by more than the margin."""
+"""guard tune's rule for a flight that one noise level does not fit (guard.runtime.tune.unfitted), on
+innovations whose spread is set by hand: a log is flagged only where its innovations pass the tuned
+model and its test comes near its threshold."""
 
 import pytest
 
 from guard.model.sensors import Sensor
-from guard.runtime.tune import Innovations, unlike
+from guard.runtime.tune import NEAR, Innovations, unfitted
 
 
 def spread(**factors: float) -> Innovations:
@@ -18,19 +18,20 @@ def spread(**factors: float) -> Innovations:
     return one
 
 
-@pytest.mark.parametrize("log_f, pooled_f, flagged", [
-    (1.33, 0.90, True),         # over the model, and 1.48 times the logs together
-    (0.95, 0.92, False),        # alike flights within the model (a simulator's)
-    (0.08, 0.06, False),        # far inside the model: differing there does not matter
-    (1.05, 0.95, False),        # over the model, but not MARGIN over the others
-    (1.2, 0.9, True),
+@pytest.mark.parametrize("factor, peak, flagged", [
+    (1.33, 2.02, True),         # over the model and alarmed with it (a real copter's tuning flight)
+    (1.33, 0.11, False),        # over the model by chance on a short log, its test far from alarming
+    (0.95, 0.90, False),        # inside the model: near the threshold by chance, not by the model
+    (1.05, NEAR, True),
 ])
-def test_a_log_is_unlike_the_others_only_past_the_model_and_the_margin(log_f, pooled_f, flagged):
-    each = [spread(gnss_vel=log_f, mag=0.8), spread(gnss_vel=0.8, mag=0.8)]
-    over = unlike(["a.bin", "b.bin"], each, spread(gnss_vel=pooled_f, mag=0.8))
-    assert over == ([(pytest.approx(log_f), "a.bin", Sensor.GNSS_VEL)] if flagged else [])
+def test_a_log_is_flagged_only_past_the_model_and_near_its_threshold(factor, peak, flagged):
+    each = [spread(gnss_vel=factor, mag=0.8), spread(gnss_vel=0.8, mag=0.8)]
+    reports = [{"peak_ratio": {"gnss_vel": peak, "mag": 0.9}}, {"peak_ratio": {"gnss_vel": 0.3}}]
+    over = unfitted(["a.bin", "b.bin"], each, reports)
+    assert over == ([(pytest.approx(factor), "a.bin", Sensor.GNSS_VEL, peak)] if flagged else [])
 
 
-def test_a_sensor_missing_from_a_log_or_from_all_is_not_unlike():
-    each = [spread(gnss_vel=2.0), spread(mag=0.8)]
-    assert unlike(["a", "b"], each, spread(mag=0.8)) == []         # no pooled figure for it: nothing to be unlike
+def test_a_sensor_a_log_lacks_is_not_flagged():
+    each = [spread(mag=0.8), spread(gnss_vel=2.0)]
+    reports = [{"peak_ratio": {"mag": 0.5}}, {"peak_ratio": {}}]        # never tested: no peak
+    assert unfitted(["a", "b"], each, reports) == []
