@@ -246,8 +246,9 @@ class Monitor:
             return []
         self._kind_told = True
         return [Notice(t_us, "warning", f'monitor.vehicle is "auto" and in {KIND_WAIT_S:g} s the source has not '
-                       'said what the vehicle is (no HEARTBEAT from the autopilot): modelled as one that may '
-                       'move sideways; set monitor.vehicle = "ground" for a wheeled vehicle, "air" to say so')]
+                       "said what the vehicle is (an autopilot's HEARTBEAT says it, DroneCAN does not): modelled "
+                       'as one that may move sideways; set monitor.vehicle = "ground" for a wheeled vehicle, '
+                       '"air" to say so')]
 
     def _advance(self, t_us: int) -> None:
         if t_us > self.t_us:

@@ -544,3 +544,15 @@ def test_auto_without_the_vehicle_type_is_said_once(told_at_s):
         assert said == []
     _, events = run(drive(40.0, seed=3), GROUND)
     assert [n for n in of(events, Notice) if "monitor.vehicle" in n.text] == []
+
+
+def test_the_wait_for_the_vehicle_type_starts_again_with_a_new_filter():
+    """A clock that jumps a minute ahead re-initialises the filter: the 10 s of monitoring before the
+    vehicle's type is said missing are counted from the new filter, not from the old clock."""
+    samples = drive(40.0, seed=3)
+    jump = T0_US + 3_000_000
+    samples = [dataclasses.replace(s, t_us=s.t_us + 60_000_000) if s.t_us >= jump else s for s in samples]
+    _, events = run(samples, MonitorConfig(declination_deg=0.0))
+    again = next(n.t_us for n in of(events, Notice) if "re-initialised" in n.text)
+    said = [n for n in of(events, Notice) if "monitor.vehicle" in n.text]
+    assert len(said) == 1 and said[0].t_us - again >= 9_500_000, (said, again)
