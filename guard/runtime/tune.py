@@ -132,12 +132,12 @@ def measure(logs: list[str], cfg: Config, each: list | None = None) -> tuple[Inn
 
 def unfitted(logs: list[str], each: list[Innovations],
              reports: list[dict]) -> list[tuple[float, str, Sensor, float]]:
-    """(factor, log name, sensor, largest statistic/threshold) for each log and sensor that the tuned model does not fit (its
-    innovations over the model, a factor over 1) and whose test shows it (its largest
-    statistic/threshold NEAR or more, replayed with the tuned model): a flight that one noise level,
-    fitted to all the logs, leaves near an alarm. Both, as a log's factor alone moves with chance on
-    a short log (a receiver's error correlated over a minute leaves few independent blocks), and a
-    sensor far from its threshold needs nothing."""
+    """(factor, log name, sensor, largest statistic/threshold) for each log and sensor that the tuned
+    model does not fit (its innovations over the model, a factor over 1) and whose test shows it (its
+    largest statistic/threshold NEAR or more, replayed with the tuned model): a flight that one noise
+    level, fitted to all the logs, leaves near an alarm. Both, as a log's factor alone moves with
+    chance on a short log (a receiver's error correlated over a minute leaves few independent
+    blocks), and a sensor far from its threshold needs nothing."""
     return [(f, Path(log).name, sensor, peak) for log, one, r in zip(logs, each, reports) for sensor in KEYS
             if (f := one.factor(sensor)) is not None and f > 1.0
             and (peak := r["peak_ratio"].get(sensor.value, 0.0)) >= NEAR]
