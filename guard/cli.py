@@ -159,8 +159,8 @@ def _recover(args) -> int:
 def _tune(args) -> int:
     from guard.config import load
     from guard.runtime.tune import tune, write_profile
-    profile, _ = tune(args.logs, load(args.config))
-    write_profile(profile, args.out, args.logs)
+    profile, cfg = tune(args.logs, load(args.config))
+    write_profile(profile, args.out, args.logs, cfg)
     changed = ", ".join(f"{k} = {v:g}" for table in profile.values() for k, v in table.items()) or "nothing"
     print(f"guard tune: {args.out}: {changed}")
     return 0

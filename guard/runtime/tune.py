@@ -24,7 +24,10 @@ when the model fits. From logs without an attack, guard tune fits, in this order
    7 held-out real copter flights (README, "Real flights never tuned on") it took the tuned profile
    from 12 alarms to 3, and a 5 m step written into their fixes from 4 of 21 caught to 2.
 Then it replays the logs with the profile and prints each one's margin: the largest statistic over its
-threshold per sensor (1.0 is an alarm). The profile holds only what differs from the base config.
+threshold per sensor (1.0 is an alarm). The profile is what it fitted; the file it writes holds that
+and, so that it works alone with --config, the settings of the config it started from that differ
+from guard's defaults (a vehicle set to "ground" changes the fit, and a file that dropped it would
+run another model than the one tuned).
 Logs that hold an attack, or a sensor fault, would teach guard to accept it: give clean ones.
 """
 
@@ -35,7 +38,9 @@ import math
 from collections.abc import Callable
 from pathlib import Path
 
-from guard.config import Config
+import tomli_w
+
+from guard.config import Config, table
 from guard.core.ekf import BM, KS, FilterConfig
 from guard.core.longrun import BLOCK, F_MAX, BlockMeans, normalised
 from guard.errors import GuardError
@@ -206,14 +211,31 @@ def tune(logs: list[str], base: Config, say: Callable[[str], None] = print) -> t
     return profile, cfg
 
 
-def write_profile(profile: dict, path: str, logs: list[str]) -> None:
+def self_contained(profile: dict, cfg: Config) -> dict:
+    """What a file must hold for `--config` alone to give cfg: every key whose value differs from
+    guard's built-in defaults (the config tune started from included: a vehicle set to "ground", a
+    link), and the profile's own keys as tune rounded them."""
+    have, defaults = table(cfg), table(Config())
+    out = {section: {k: v for k, v in keys.items() if v != defaults[section][k]} for section, keys in have.items()}
+    for section, keys in profile.items():
+        out.setdefault(section, {}).update(keys)
+    return {section: keys for section, keys in out.items() if keys}
+
+
+def write_profile(profile: dict, path: str, logs: list[str], cfg: Config | None = None) -> None:
+    """The profile as TOML: with cfg (the tuned config), self-contained (`self_contained`), its
+    header naming what tune fitted and what came from the config it started from; without, the
+    profile's keys alone."""
+    full = self_contained(profile, cfg) if cfg is not None else profile
+    fitted = {k for keys in profile.values() for k in keys}
+    kept = sorted(k for keys in full.values() for k in keys if k not in fitted)
     lines = ["# guard's noise model fitted by guard tune to these clean logs:"]
     lines += [f"#   {Path(log).name}" for log in logs]
+    if kept:
+        lines += ["# Beside what it fitted, the settings of the config it started from that differ from guard's",
+                  f"# defaults: {', '.join(kept)}."]
     lines += ["# Use it with: guard run --config THIS_FILE (or guard replay ... --config THIS_FILE).", ""]
-    for section, table in profile.items():
-        lines.append(f"[{section}]")
-        lines += [f"{key} = {value!r}" for key, value in table.items()] + [""]
     try:
-        Path(path).write_text("\n".join(lines))
+        Path(path).write_text("\n".join(lines) + "\n" + tomli_w.dumps(full))
     except OSError as e:
         raise GuardError(f"{path}: cannot write: {e.strerror}") from None

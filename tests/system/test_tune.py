@@ -54,11 +54,19 @@ def test_tuned_on_clean_drives_the_held_out_one_is_quiet_and_its_attack_caught(d
 
 
 def test_the_cli_writes_a_profile_and_names_a_missing_log(drives, tmp_path):
+    """The profile works alone with --config: it holds what tune fitted and the settings of the config
+    it started from (a ground vehicle, which changes the fit; a link), said in its header."""
+    base = tmp_path / "base.toml"
+    base.write_text('[monitor]\nvehicle = "ground"\n\n[link]\nconnect = "udpin:0.0.0.0:14551"\n')
     out = tmp_path / "vehicle.toml"
-    p = subprocess.run([sys.executable, "-m", "guard", "tune", drives[1], "--out", str(out)],
+    p = subprocess.run([sys.executable, "-m", "guard", "tune", drives[1], "--out", str(out), "--config", str(base)],
                        capture_output=True, text=True, cwd=tmp_path)
     assert p.returncode == 0, p.stderr
     assert "gnss_delay_s" in out.read_text() and "largest statistic/threshold" in p.stdout
+    alone = load(str(out))
+    assert alone.monitor.vehicle == "ground" and alone.link.connect == "udpin:0.0.0.0:14551"
+    assert alone.monitor.filter.gnss_delay_s == pytest.approx(0.2)
+    assert "connect, vehicle." in out.read_text()
     p = subprocess.run([sys.executable, "-m", "guard", "tune", str(tmp_path / "absent.bin")],
                        capture_output=True, text=True, cwd=tmp_path)
     assert p.returncode == 1 and p.stderr.strip() == f"guard: error: {tmp_path / 'absent.bin'}: no such file"
