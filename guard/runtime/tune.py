@@ -191,6 +191,9 @@ def tune(logs: list[str], base: Config, say: Callable[[str], None] = print) -> t
     each: list[Innovations] = []
     pooled, reports = measure(logs, cfg, each)
     over = unfitted(logs, each, reports)
+    if len(logs) == 1:
+        say("one log: whether one noise level fits every flight of this vehicle cannot be told from it; "
+            "give guard tune two or more clean flights")
     widen = bool(over) and cfg.monitor.max_wander_factor < F_MAX
     if widen:
         f, name, sensor, peak = max(over)

@@ -63,6 +63,7 @@ def test_the_cli_writes_a_profile_and_names_a_missing_log(drives, tmp_path):
                        capture_output=True, text=True, cwd=tmp_path)
     assert p.returncode == 0, p.stderr
     assert "gnss_delay_s" in out.read_text() and "largest statistic/threshold" in p.stdout
+    assert "one log: whether one noise level fits every flight" in p.stdout
     alone = load(str(out))
     assert alone.monitor.vehicle == "ground" and alone.link.connect == "udpin:0.0.0.0:14551"
     assert alone.monitor.filter.gnss_delay_s == pytest.approx(0.2)
