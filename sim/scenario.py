@@ -58,6 +58,9 @@ class Route:
     lookahead_m: float = 6.0
     sideslip_rad_per_mps2: float = 0.0   # a wheel's slip: the course turns outward of the heading by this
                                          # much per m/s^2 of lateral acceleration (a car: 0.005 to 0.01)
+    sensors_ahead_m: float = 0.0         # the IMU and the GNSS antenna this far ahead of the point that does
+                                         # not slide sideways (a car's rear axle, a skid-steer's turning centre;
+                                         # < 0: behind it): in a turn they move sideways at this times the yaw rate
 
 
 @dataclass(frozen=True)
@@ -260,6 +263,8 @@ def parse(data: dict, where: str) -> Scenario:
         raise ScenarioError(f"{where}: route.max_yaw_jerk_radps3: must be >= 0 (0: the yaw acceleration steps)")
     if not 0 <= route.sideslip_rad_per_mps2 <= 0.05:
         raise ScenarioError(f"{where}: route.sideslip_rad_per_mps2: must be within 0..0.05 (a car: 0.005 to 0.01)")
+    if not -3.0 <= route.sensors_ahead_m <= 3.0:
+        raise ScenarioError(f"{where}: route.sensors_ahead_m: must be within -3..3 m (a car's wheelbase is 2.5 to 3)")
     if route.speed_mps < 0 or any(len(p) == 3 and p[2] < 0 for p in route.waypoints_m):
         raise ScenarioError(f"{where}: route: speeds must be >= 0")
     if scenario.duration_s <= 0:

@@ -10,6 +10,10 @@ positive: the vehicle slides outward of its turn in proportion to its lateral ac
 a car: about 0.005 to 0.01 rad per m/s^2), its course over ground differs from its heading by
 atan(w / v), and
     e' = v cos(psi) - w sin(psi),  n' = v sin(psi) + w cos(psi).
+The sensors (IMU and GNSS antenna, together) sit `route.sensors_ahead_m` = d ahead of the point that
+does not slide (a car's rear axle, a skid-steer's turning centre): w gains d omega, the sideways
+velocity of a point of a turning rigid body; the position, velocity and specific force simulated are
+that point's (its specific force from w and w' as any other).
 How fast the yaw rate follows the controller: by default the yaw acceleration steps, up to
 `route.max_yaw_accel_radps2`, the moment the command changes. No tyre does that, and with a slip it
 would step the sideways acceleration too (w' carries the yaw acceleration times v^2). With
@@ -107,7 +111,7 @@ class Vehicle:
         s.yaw_accel = domega / dt if dt > 0 else 0.0
         s.omega += domega
         v_mid = s.v + dv / 2
-        w_new = -r.sideslip_rad_per_mps2 * s.omega * (s.v + dv) ** 2
+        w_new = -r.sideslip_rad_per_mps2 * s.omega * (s.v + dv) ** 2 + r.sensors_ahead_m * s.omega
         w_mid = (s.w + w_new) / 2
         psi_mid = s.psi + s.omega * dt / 2
         s.e += dt * (v_mid * math.cos(psi_mid) - w_mid * math.sin(psi_mid))

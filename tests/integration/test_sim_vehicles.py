@@ -377,6 +377,29 @@ def test_a_slipping_vehicle_s_course_turns_outward_of_its_heading_and_its_imu_fe
         scn.parse({**BASE, "route": {**BASE["route"], "sideslip_rad_per_mps2": -0.01}}, "slip.toml")
 
 
+def test_sensors_ahead_of_the_axle_swing_sideways_in_a_turn_and_feel_its_yaw_acceleration():
+    """route.sensors_ahead_m = d: a point d ahead of the axle that does not slide moves sideways at d
+    omega in a turn (left in a left turn), and its sideways specific force gains d times the yaw
+    acceleration while the yaw rate changes; the GNSS velocity is that point's."""
+    from guard_sim.sensors import Sensors
+    from guard_sim.vehicle import Vehicle
+    d, v, omega, dt = 1.2, 6.0, 0.4, 0.01
+    sc = scn.parse({**BASE, "route": {**BASE["route"], "sensors_ahead_m": d}}, "ahead.toml")
+    car = Vehicle(sc.route, 90.0)
+    car.s.v = v
+    car.step(dt, v, omega)                                     # the yaw rate starts to change
+    assert car.s.yaw_accel > 0 and car.s.w_dot == pytest.approx(d * car.s.yaw_accel)
+    for _ in range(300):                                       # 3 s: the yaw rate is reached and held
+        car.step(dt, v, omega)
+    assert car.s.omega == pytest.approx(omega) and car.s.w == pytest.approx(d * omega)
+    quiet = scn.parse({**BASE, "noise": {**NOISELESS, "gnss_vel_white_mps": 0.0}}, "quiet.toml")
+    gnss = Sensors(quiet, seed=1).gnss(0.0, car.s)
+    course = math.atan2(gnss.vel_n_mps, gnss.vel_e_mps)
+    assert math.remainder(course - car.s.psi, math.tau) == pytest.approx(math.atan2(d * omega, v), abs=1e-9)
+    with pytest.raises(ScenarioError, match="sensors_ahead_m"):
+        scn.parse({**BASE, "route": {**BASE["route"], "sensors_ahead_m": 4.0}}, "ahead.toml")
+
+
 def test_a_car_s_steering_moves_its_yaw_acceleration_smoothly():
     """route.max_yaw_jerk_radps3 = J: the yaw acceleration moves at most J dt a step, the yaw rate still
     reaches the command (overshooting it by under 0.5 %), and with a slip the
