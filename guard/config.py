@@ -64,7 +64,8 @@ class Config:
     source_text: str = ""                   # the TOML as read, stored in the MCAP log
 
 
-SIGNED = {"mag_offset_rad"}     # keys whose sign means a direction (a compass off east or west): any finite number
+SIGNED = {"mag_offset_rad", "sensors_ahead_m"}     # keys whose sign means a direction (a compass off east or west,
+                                                # sensors behind the axle): any finite number
 
 
 def _typed(cls, table: dict, where: str):
@@ -146,6 +147,8 @@ def _check(cfg: Config, where: str) -> None:
         "filter.q_accel_no_imu_mps2": (flt.q_accel_no_imu_mps2 <= 0, "must be > 0"),
         "filter.slip_rad_per_mps2": (not 0 <= flt.slip_rad_per_mps2 <= 0.05,
                                      "must be within 0..0.05 (a car on tarmac: 0.005 to 0.01)"),
+        "filter.sensors_ahead_m": (not -3.0 <= flt.sensors_ahead_m <= 3.0,
+                                   "must be within -3..3 m (a car's wheelbase is 2.5 to 3 m)"),
         "log.rotate_mb": (0 < cfg.log.rotate_mb < 1.0, "must be 0 (never) or >= 1 MB"),
         "link.require_signed": (link.require_signed and not link.signing_key_file,
                                 "needs link.signing_key_file (without a key no signature can be checked)"),

@@ -8,19 +8,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from guard.core.ekf import BM, KS, N_STATES, TH, VX, VY, X, Y, NavEKF, body_velocity
+from guard.core.ekf import BM, KS, LA, N_STATES, TH, VX, VY, X, Y, NavEKF, body_velocity
 from guard.model.samples import GnssFix
 
 MAX_POS_SIGMA_M = 10_000.0     # an estimate less sure of its position than this has diverged
 MAX_SPEED_MPS = 300.0          # nor does a vehicle guard watches move faster
 
 
-def initial_state(fix: GnssFix, theta_mag: float | None, b0: float, k0: float = 0.0) -> np.ndarray:
+def initial_state(fix: GnssFix, theta_mag: float | None, b0: float, k0: float = 0.0, d0: float = 0.0) -> np.ndarray:
     """The first state: at the fix's position (the frame's origin), the heading the magnetometer
     reads less its known offset b0 (else the course, when moving, else 0), the fix's velocity, the
-    wheels' known slip k0."""
+    wheels' known slip k0 and the sensors' known place ahead of the axle d0."""
     x0 = np.zeros(N_STATES)
-    x0[KS] = k0
+    x0[KS], x0[LA] = k0, d0
     ve, vn = fix.vel_e_mps or 0.0, fix.vel_n_mps or 0.0
     x0[BM] = b0                                 # the compass reads theta + b_psi
     if theta_mag is not None:
@@ -34,14 +34,16 @@ def initial_state(fix: GnssFix, theta_mag: float | None, b0: float, k0: float = 
 
 @dataclass(frozen=True)
 class Learnt:
-    """What a filter learnt of the vehicle, not of the moment: the compass's offset b_psi and the
-    wheels' slip k_s, with their variances. A filter started again on the same vehicle (a reboot)
+    """What a filter learnt of the vehicle, not of the moment: the compass's offset b_psi, the
+    wheels' slip k_s and the sensors' place ahead of the axle d, with their variances. A filter started again on the same vehicle (a reboot)
     starts from them."""
 
     b_psi: float
     var_b_psi: float
     k_s: float
     var_k_s: float
+    d: float = 0.0
+    var_d: float = 0.0
 
     @classmethod
     def of(cls, ekf: NavEKF) -> Learnt | None:
@@ -50,17 +52,19 @@ class Learnt:
         x, P = ekf.x, ekf.P
         if P[BM, BM] <= 0.0 and P[KS, KS] <= 0.0:
             return None
-        return cls(float(x[BM]), float(P[BM, BM]), float(x[KS]), float(P[KS, KS]))
+        return cls(float(x[BM]), float(P[BM, BM]), float(x[KS]), float(P[KS, KS]), float(x[LA]), float(P[LA, LA]))
 
     def restore(self, ekf: NavEKF) -> None:
         """Their variances into a new filter (whose x0 already holds their values), uncorrelated."""
         ekf.P[BM, :] = ekf.P[:, BM] = 0.0
         ekf.P[KS, :] = ekf.P[:, KS] = 0.0
-        ekf.P[BM, BM], ekf.P[KS, KS] = self.var_b_psi, self.var_k_s
+        ekf.P[LA, :] = ekf.P[:, LA] = 0.0
+        ekf.P[BM, BM], ekf.P[KS, KS], ekf.P[LA, LA] = self.var_b_psi, self.var_k_s, self.var_d
 
     def __str__(self) -> str:
         return (f"compass offset b_psi {math.degrees(self.b_psi):+.1f} deg "
-                f"(+-{math.degrees(math.sqrt(self.var_b_psi)):.1f}), wheel slip k_s {self.k_s:.4f}")
+                f"(+-{math.degrees(math.sqrt(self.var_b_psi)):.1f}), wheel slip k_s {self.k_s:.4f}, "
+                f"sensors {self.d:+.2f} m ahead of the axle")
 
 
 def diverged(ekf: NavEKF) -> str | None:

@@ -1,4 +1,5 @@
-"""The paper's extended Kalman filter (11 states) and the magnetometer's offset: INS/GNSS loosely coupled, multi-rate.
+"""The paper's extended Kalman filter (11 states), the magnetometer's offset and the wheels' slip and lever arm:
+INS/GNSS loosely coupled, multi-rate.
 
 State (paper, Sec. III-B), indices in brackets:
     x[0] x, x[1] y      position east, north (m, local tangent plane)
@@ -16,6 +17,13 @@ State (paper, Sec. III-B), indices in brackets:
                         paper]: in a turn its tyres slide outward, v_y = -k_s theta_dot v_x |v_x|
                         (a car on tarmac: 0.005 to 0.01). Learnt in the turns, as b_psi is, so that the
                         sideways constraint holds the vehicle to its own slip and not to none.
+    x[13] d             how far ahead of the point that does not slide sideways (a car's rear axle, a
+                        skid-steer's turning centre) the sensors sit (m) [beyond the paper]: a point of a
+                        turning body d ahead of that one moves sideways at d theta_dot, so the constraint
+                        is v_y - d theta_dot + k_s theta_dot v_x |v_x| = 0. Learnt in the turns as k_s is
+                        (it grows with the yaw rate alone, the slip with the speed too); an autopilot or a
+                        GNSS antenna mid-car is 1 to 1.5 m ahead of the rear axle, 1 m/s sideways in a
+                        tight turn, which the sideways test would otherwise read as an accelerometer's bias.
 
 Transition with sampling time T (the paper's discrete model):
     x(k+1)  = x + T (v_x cos theta - v_y sin theta)
@@ -31,8 +39,8 @@ that reading would be integrated into a sideways velocity. On a straight line bo
 Measurements (linear in the state but for GNSS velocity), each in its own file of `guard.core.aiding`:
     GNSS position  (x, y);  GNSS velocity (v_e, v_n) = R(theta) (v_x, v_y)   [beyond the paper]
     heading        theta + b_psi;  gyro theta_dot + b;  accelerometer (a_x + b_ax, a_y + b_ay)
-    ground vehicles: v_y + k_s theta_dot v_x |v_x| = 0, a pseudo-measurement (a wheel does not slide
-    sideways but by its slip) [beyond the paper]
+    ground vehicles: v_y - d theta_dot + k_s theta_dot v_x |v_x| = 0, a pseudo-measurement (a wheel does
+    not slide sideways but by its slip; the sensors ahead of it swing) [beyond the paper]
 
 The sideways constraint (`lateral_sigma_mps`) ties the course over ground to the heading. Without it
 a heading error is hidden by a sideways velocity (a multicopter may fly sideways, so it is off in
@@ -61,8 +69,8 @@ from dataclasses import dataclass
 import numpy as np
 
 MAX_STEP_S = 0.1       # the longest step of the discrete model
-N_STATES = 13
-X, Y, TH, VX, VY, W, AX, AY, BW, BAX, BAY, BM, KS = range(N_STATES)
+N_STATES = 14
+X, Y, TH, VX, VY, W, AX, AY, BW, BAX, BAY, BM, KS, LA = range(N_STATES)
 
 
 def body_velocity(theta: float, ve: float, vn: float) -> tuple[float, float]:
@@ -126,6 +134,8 @@ class FilterConfig:
     q_mag_offset_rad: float = 3e-4    # the magnetometer's heading offset, rad/sqrt(s): 0.4 degree in 10 minutes
     q_slip_rad_per_mps2: float = 1e-4   # k_s, the wheels' slip (rad per m/s^2 of lateral acceleration),
                                       # per sqrt(s): 0.0025 in 10 minutes (a change of surface)
+    q_sensors_ahead_m: float = 1e-3   # d, the sensors ahead of the point that does not slide, m/sqrt(s):
+                                      # fixed to the vehicle, 2.5 cm in 10 minutes
     use_gnss_velocity: bool = True
     centripetal: bool = True          # c in the transition; False is the paper's model as written
     p0_pos_m: float = 2.0
@@ -137,12 +147,14 @@ class FilterConfig:
     p0_accel_bias_mps2: float = 0.2
     p0_mag_offset_rad: float = 0.1    # a compass a few degrees off (0.1 rad = 5.7 degrees, 1 sigma)
     p0_slip_rad_per_mps2: float = 0.01   # k_s: a car's 0.005 to 0.01 within 1 sigma of none
+    p0_sensors_ahead_m: float = 1.0   # d: a car's autopilot or antenna, mid-car, within 1.5 sigma of the axle
     mag_offset_rad: float = 0.0       # the compass's offset, where known (guard tune): the learnt b_psi starts here
     slip_rad_per_mps2: float = 0.0    # the wheels' slip, where known (guard tune): the learnt k_s starts here
+    sensors_ahead_m: float = 0.0      # the sensors ahead of the axle, where known (guard tune): the learnt d starts here
 
 
 class NavEKF:
-    """x: state (13,), P: covariance (13, 13). predict() then innovation() then fuse()."""
+    """x: state (14,), P: covariance (14, 14). predict() then innovation() then fuse()."""
 
     def __init__(self, cfg: FilterConfig, x0: np.ndarray):
         self.cfg = cfg
@@ -150,16 +162,16 @@ class NavEKF:
         self.P = np.diag(np.square([cfg.p0_pos_m, cfg.p0_pos_m, cfg.p0_heading_rad, cfg.p0_vel_mps, cfg.p0_vel_mps,
                                     cfg.p0_yaw_rate_radps, cfg.p0_accel_mps2, cfg.p0_accel_mps2,
                                     cfg.p0_gyro_bias_radps, cfg.p0_accel_bias_mps2, cfg.p0_accel_bias_mps2,
-                                    cfg.p0_mag_offset_rad, cfg.p0_slip_rad_per_mps2]))
+                                    cfg.p0_mag_offset_rad, cfg.p0_slip_rad_per_mps2, cfg.p0_sensors_ahead_m]))
         self.q = np.square([cfg.q_pos_m, cfg.q_pos_m, cfg.q_heading_rad, cfg.q_vel_mps, cfg.q_vel_mps,
                             cfg.q_yaw_rate_radps, cfg.q_accel_mps2, cfg.q_accel_mps2, cfg.q_gyro_bias_radps,
                             cfg.q_accel_bias_mps2, cfg.q_accel_bias_mps2, cfg.q_mag_offset_rad,
-                            cfg.q_slip_rad_per_mps2])
+                            cfg.q_slip_rad_per_mps2, cfg.q_sensors_ahead_m])
         self.c = 1.0 if cfg.centripetal else 0.0
         self._F = np.eye(N_STATES)
         self._I = np.eye(N_STATES)
         self._diag = np.diag_indices(N_STATES)
-        # False: b_psi and k_s are held as they are, "consider" states (their rows of K zeroed): while a test is near
+        # False: b_psi, k_s and d are held as they are, "consider" states (their rows of K zeroed): while a test is near
         # its threshold, what the filter learns of the vehicle could be an attack's doing (Monitor)
         self.learning = True
 
@@ -233,7 +245,7 @@ class NavEKF:
         """GNSS alone (no IMU fast enough to integrate): the heading, yaw rate and IMU biases are held
         where they are, without noise, so that the model is the linear one of a body velocity and
         acceleration in a fixed frame (a random walk in acceleration)."""
-        for i in (TH, W, BW, BAX, BAY, BM, KS):
+        for i in (TH, W, BW, BAX, BAY, BM, KS, LA):
             if i != TH:
                 self.x[i] = 0.0
             self.P[i, :] = self.P[:, i] = 0.0
@@ -261,7 +273,7 @@ class NavEKF:
         # K = P H' S^-1
         K = PHT @ np.linalg.inv(S)
         if not self.learning:
-            K[BM] = K[KS] = 0.0     # the Joseph form below holds for any gain: P stays theirs
+            K[BM] = K[KS] = K[LA] = 0.0     # the Joseph form below holds for any gain: P stays theirs
         self.x += K @ r
         self.x[TH] = math.remainder(self.x[TH], math.tau)
         I_KH = self._I - K @ H

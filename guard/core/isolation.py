@@ -12,6 +12,11 @@ residual against the filter's track and heading), and from them names the sensor
 - a GNSS velocity whose course agrees with the filter's heading but not with its track (the heading
   turned by the filter's own sideways velocity): the lateral accelerometer; on wheels only it pushes
   the track sideways.
+- the accelerometer's "lateral" channel (on wheels, the sideways constraint's innovation): the gyro
+  where the heading's witnesses say it bent the heading (the track then leaves the wheels' line
+  too); the GNSS velocity where its course has left the filter's heading (a spoof drags the track
+  sideways); else the accelerometer, which builds a sideways velocity the wheels do not have; with
+  the GNSS velocity as a suspect where no course was at hand (standing still, a silent receiver).
 - a GNSS velocity alarm whose run began more than 2 WITNESS_S before it, its innovation across the
   track and the magnetometer still in use: the same turns over the whole run (up to RUN_S), the
   gyro's with the filter's bias of the run's onset; the magnetometer apart from the gyro and the
@@ -30,7 +35,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from guard.core.ekf import TH, VX, VY, FilterConfig
+from guard.core.ekf import KS, LA, TH, VX, VY, W, FilterConfig
 from guard.core.history import REWIND_S, keep_since
 from guard.model.samples import GnssFix
 from guard.model.sensors import AMBIGUOUS, CHANNELS, Sensor
@@ -57,7 +62,7 @@ class CourseWitness(NamedTuple):      # one GNSS velocity at speed (ground vehic
     t_us: int
     course: float
     speed: float
-    r0: float                         # course - heading
+    r0: float                         # course - (heading + the angle of the sideways velocity the wheels allow)
 
 
 def compass_less_gyro(mag, gyro_bias: float) -> tuple[np.ndarray, np.ndarray]:
@@ -97,7 +102,10 @@ class Witnesses:
             self.course_run.clear()
             return
         course = math.atan2(fix.vel_n_mps, fix.vel_e_mps)
-        r0 = math.remainder(course - x[TH], math.tau)          # against the heading alone
+        # against the heading and what the wheels allow alone: the sensors' swing ahead of the axle and
+        # the tyres' slip, as the filter has learnt them (the constraint without the filter's own v_y)
+        allowed = x[LA] * x[W] - x[KS] * x[W] * x[VX] * abs(x[VX])
+        r0 = math.remainder(course - x[TH] - math.atan2(allowed, x[VX]), math.tau)
         r = math.remainder(r0 - math.atan2(x[VY], x[VX]), math.tau)    # against the filter's track
         self.course.append(CourseWitness(r, math.sqrt((vel_sigma / speed) ** 2 + P_heading),
                                          fix.t_us - int(self.f.gnss_delay_s * 1e6), course, speed, r0))
@@ -144,6 +152,25 @@ class Witnesses:
         if z >= TURN_Z[0] > z0:
             return Sensor.ACCEL, (), "y"
         return sensor, (() if z >= WITNESS_Z else AMBIGUOUS.get(sensor, ())), None
+
+    def isolate_lateral(self, now_us: int, gyro_bias: float) -> tuple[Sensor, tuple[Sensor, ...], str | None]:
+        """Which sensor an alarm on the accelerometer's "lateral" channel names (see the module's
+        docstring), what it cannot rule out, and the channel."""
+        turns = self.turns(now_us, gyro_bias)
+        if turns is not None and turns[1] is not None:
+            z_gm, z_gc, z_mc = turns
+            if min(abs(z_gm), abs(z_gc)) >= TURN_Z[0] and abs(z_mc) < TURN_Z[1]:
+                return Sensor.GYRO, (), None
+        # the course over the last 2 WITNESS_S (a 1 Hz receiver's two fixes): a spoof has dragged it off the
+        # heading by then, a sideways bias leaves it on it; without two fixes at speed, either
+        last = [(w.r0, w.sigma) for w in self.course]
+        if len(last) < 2:
+            return Sensor.ACCEL, (Sensor.GNSS_VEL,), "lateral"
+        r0, s = np.mean(last, axis=0)
+        if abs(r0 / s) * math.sqrt(len(last)) >= TURN_Z[0]:
+            r, S = self.last_vel
+            return Sensor.GNSS_VEL, (), CHANNELS[Sensor.GNSS_VEL][int(np.argmax(np.abs(r) / np.sqrt(np.diagonal(S))))]
+        return Sensor.ACCEL, (), "lateral"
 
     def compass_turned(self, now_us: int, onset_us: int, gyro_bias: float) -> bool:
         """Whether, over a GNSS velocity alarm's run, the magnetometer turned apart from the gyro and the
@@ -218,10 +245,11 @@ class Witnesses:
         # by more than chance: the best of n - 1 splits beats a line on noise alone by a few sigma^2
         return rss_line - float(np.min(left + right)) > JUMP_Z2 * self.f.heading_sigma_rad ** 2
 
-    def lateral_bias(self, gyro_bias: float) -> float:
-        """The lateral accelerometer's offset over the last 2 s: its mean reading less the centripetal
-        acceleration of a wheel that does not slide, yaw rate (less the filter's gyro bias) x speed."""
-        _, _, rate, ay, vx = np.array(self.mag).T
+    def lateral_bias(self, gyro_bias: float, window_s: float = 2 * WITNESS_S) -> float:
+        """The lateral accelerometer's offset over the last window_s (2 s at most): its mean reading less
+        the centripetal acceleration of a wheel that does not slide, yaw rate (less the filter's gyro
+        bias) x speed."""
+        t, _, rate, ay, vx = np.array([w for w in self.mag if w.t_us >= self.mag[-1].t_us - window_s * 1e6]).T
         return float(np.mean(ay - (rate - gyro_bias) * vx))
 
     def gyro_bias(self) -> float:

@@ -26,6 +26,8 @@ from guard.model.sensors import CHANNELS, RECEIVER, Sensor
 
 
 CALM_RATIO = 0.5        # every test's statistic under this share of its threshold: the filter may learn
+LATERAL_S = 1.0         # s: a "lateral" alarm comes within about a second of a sideways bias's onset, so its
+                        # offset is read over the last second (over two, half of it would be from before)
 STANDING_GAP_S = 30.0   # s: a latched sensor's alarm this soon after its last one is that one going on
 
 
@@ -61,7 +63,8 @@ class Judge:
         else:
             events, fused = self._readmission(sensor, t_us, r, S, hits, ekf, now_us, gnss_index)
         if record:
-            events.insert(0, Tested(Innovation(t_us, sensor, CHANNELS[sensor], r, S, fused), gnss_index, stat, thr))
+            events.insert(0, Tested(Innovation(t_us, sensor, CHANNELS[sensor][:len(r)], r, S, fused), gnss_index,
+                                    stat, thr))
         return events, fused
 
     def _alarms(self, sensor, t_us, hits, stat, thr, ekf, now_us, gnss_index) -> list[Event]:
@@ -69,14 +72,15 @@ class Judge:
         events: list[Event] = []
         health, bw, run = self.health, ekf.x[BW], self._run(sensor)
         for i, offset in hits:
+            lateral = sensor == Sensor.ACCEL and CHANNELS[sensor][i] == "lateral"
             named, ambiguous, channel = self.witnesses.isolate(sensor, now_us, bw, run) \
-                if sensor in (Sensor.MAG, Sensor.GNSS_VEL) else (sensor, (), None)
+                if sensor in (Sensor.MAG, Sensor.GNSS_VEL) else self.witnesses.isolate_lateral(now_us, bw) \
+                if lateral else (sensor, (), None)
             if named in health.excluded:
                 continue
             channel = CHANNELS[sensor][i] if named == sensor else channel or CHANNELS[named][0]
-            if named != sensor:                 # a witness named it: its own offset, not the alarm's
-                offset = self.witnesses.gyro_bias() if named == Sensor.GYRO else self.witnesses.turned \
-                    if named == Sensor.MAG else self.witnesses.lateral_bias(bw)
+            if named != sensor or lateral:      # a witness named it: its own offset, not the alarm's
+                offset = self._witnessed(named, channel, lateral, bw, float(ekf.x[BAY]))
             events.append(Alarm(t_us, gnss_index, named, channel, stat[i], thr[i], offset,
                                 self.detector.name, ambiguous, standing=self.record_alarm(named, t_us)))
             if not self.cfg.exclude_on_alarm:
@@ -92,13 +96,29 @@ class Judge:
                 # the course named the compass over the alarm's run: the gyro bias the filter learnt from
                 # it since the run began is the compass's turn, given back (as the accelerometer's below)
                 ekf.x[BW] = run[1]
-            if named == Sensor.ACCEL and named != sensor:
+            if named == Sensor.ACCEL and (named != sensor or lateral):
                 # the bias of the oldest epoch kept is taken for the sensor's own; what the filter
                 # absorbed since is the attack's, given back
                 oldest = self.history.oldest_x()
                 health.accel_ref = float((oldest if oldest is not None else ekf.x)[BAY])
                 ekf.x[BAY] = health.accel_ref
         return events
+
+    def _witnessed(self, named: Sensor, channel: str, lateral: bool, bw: float, bay: float) -> float:
+        """The offset of a sensor a witness named, in its own unit: the gyro's bias, the compass's turn,
+        the GNSS velocity's innovation on its axis, the lateral accelerometer's mean reading less the
+        centripetal acceleration (over the last LATERAL_S for a "lateral" alarm; the filter's bias
+        without a magnetometer's witnesses)."""
+        w = self.witnesses
+        if named == Sensor.GYRO:
+            return w.gyro_bias()
+        if named == Sensor.MAG:
+            return w.turned
+        if named == Sensor.GNSS_VEL:
+            return float(w.last_vel[0][CHANNELS[named].index(channel)])
+        if not w.mag:
+            return bay
+        return w.lateral_bias(bw, LATERAL_S) if lateral else w.lateral_bias(bw)
 
     def _run(self, sensor: Sensor) -> tuple[int, float] | None:
         """A GNSS velocity alarm's run, to weigh the compass over: the time of the epoch it began at (one

@@ -79,7 +79,7 @@ class LongRun:
     def scale(self, sensor: Sensor, S: np.ndarray) -> np.ndarray:
         """S as the test sees it: F_i F_j S_ij."""
         v = self.v.get(sensor)
-        if v is None:
+        if v is None or len(v) != len(S):       # its channels changed (a vehicle found on wheels): as the model says
             return S
         f = self.factors(sensor)
         return S * np.outer(f, f)
@@ -97,7 +97,9 @@ class LongRun:
             return None
         zbar, duration = closed
         n = self.n.get(sensor, 0.0)
-        v = self.v.get(sensor, np.ones(len(zbar)))
+        v = self.v.get(sensor)
+        if v is None or len(v) != len(zbar):
+            v, n = np.ones(len(zbar)), 0.0
         # a running mean with the model as a prior, until it has TAU_S of blocks; then it forgets
         alpha = max(1.0 / (n + 1.0 + PRIOR_BLOCKS), 1.0 - math.exp(-duration / TAU_S))
         self.v[sensor] = v + alpha * (BLOCK * zbar * zbar - v)

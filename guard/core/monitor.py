@@ -17,7 +17,8 @@ of heading, gyro and accelerometer, test them, fuse them. Per GNSS sample: the s
 and velocity, then an Estimate. A GNSS alarm rewinds the filter to before the attack at the next
 sample, once the alarm is out; the alarm epoch's Estimate waits for it and comes out with that
 sample's events. A ground vehicle (`vehicle`, from the autopilot's HEARTBEAT by default) also has
-v_y = 0 fused with every IMU update.
+v_y = 0 fused with every IMU update, its innovation tested as the accelerometer's "lateral" channel
+(`test_lateral`).
 """
 
 from __future__ import annotations
@@ -75,6 +76,8 @@ class MonitorConfig:
     min_imu_hz: float = 8.0                 # Hz: a slower IMU stream (telemetry) is not integrated
     max_wander_factor: float = 1.0          # the most a test is widened for its innovations' wander
                                             # (guard.core.longrun); 1, the default: as the model says
+    test_lateral: bool = True               # on wheels, the sideways constraint's innovation is tested as the
+                                            # accelerometer's channel "lateral" (not only fused)
 
 
 class Monitor:
@@ -93,6 +96,8 @@ class Monitor:
         self.date = date
         f = self.cfg.filter
         n_channels = sum(len(c) for s, c in CHANNELS.items() if s != Sensor.GNSS_VEL or f.use_gnss_velocity)
+        if self.cfg.vehicle == "air" or not self.cfg.test_lateral:
+            n_channels -= 1                         # no wheels, or not tested: no "lateral" channel
         self.detector = make_detector(self.cfg.detector, n_channels)
         self.gnss_aid = GnssAiding(f)
         self.imu_aid = ImuAiding(f)
@@ -388,8 +393,9 @@ class Monitor:
         self._heading_unset = self._last_mag is None and self.inertial is not False
         theta = None if self._last_mag is None else heading(*self._last_mag, self.declination)
         kept, f = self._learnt, self.cfg.filter
-        b0, k0 = (kept.b_psi, kept.k_s) if kept else (f.mag_offset_rad, f.slip_rad_per_mps2)
-        x0 = initial_state(fix, theta, b0, k0)
+        b0, k0, d0 = (kept.b_psi, kept.k_s, kept.d) if kept else \
+            (f.mag_offset_rad, f.slip_rad_per_mps2, f.sensors_ahead_m)
+        x0 = initial_state(fix, theta, b0, k0, d0)
         self.ekf = NavEKF(f, x0)
         if kept:
             kept.restore(self.ekf)
@@ -433,15 +439,20 @@ class Monitor:
         r, S, PHT = self.ekf.innovation(aid.z, aid.hx, aid.H, aid.R, angle_rows=angle)
         if theta is not None:
             self.witnesses.add_heading(HeadingWitness(s.t_us, theta, rate, ay, self.ekf.x[VX]))
-        # one stacked update, tested sensor by sensor
+        # one stacked update, tested sensor by sensor; on wheels the constraint's row (the last) is tested
+        # with the accelerometer's, whose sideways bias it shows first (the wheels hold the sideways
+        # velocity the bias would build, and their constraint's innovation is where the bias goes)
         keep: list[int] = []
+        lateral = self.ground and self.cfg.test_lateral
         for sensor, i, j in blocks:
-            ev, fused = self._test(sensor, s.t_us, r[i:j], S[i:j, i:j])
+            last = len(r) if lateral and sensor == Sensor.ACCEL else j     # the constraint's row follows the
+                                                                            # accelerometer's
+            ev, fused = self._test(sensor, s.t_us, r[i:last], S[i:last, i:last])
             events += ev
             if fused:
                 keep.extend(range(i, j))
         if self.ground:
-            keep.append(len(r) - 1)                # a constraint, not a sensor: never tested, always fused
+            keep.append(len(r) - 1)                # a constraint, not a sensor: always fused
         self.history.imu_fused(s.t_us, fuse_rows(self.ekf, s.t_us, aid, r, S, PHT, keep, angle,
                                                  row_sensors(blocks, bool(self.ground))), self.ekf.x)
         if not self.ground:

@@ -15,7 +15,8 @@ class Sensor(StrEnum):
     GNSS_VEL = "gnss_vel"      # GNSS velocity, east and north (m/s)
     MAG = "mag"                # heading from the magnetometer (rad)
     GYRO = "gyro"              # yaw rate (rad/s)
-    ACCEL = "accel"            # horizontal specific force, x forward and y left (m/s^2)
+    ACCEL = "accel"            # horizontal specific force, x forward and y left (m/s^2); on wheels, and
+                               # "lateral": the sideways velocity it builds against them (m/s)
 
 
 CHANNELS: dict[Sensor, tuple[str, ...]] = {
@@ -23,7 +24,7 @@ CHANNELS: dict[Sensor, tuple[str, ...]] = {
     Sensor.GNSS_VEL: ("east", "north"),
     Sensor.MAG: ("yaw",),
     Sensor.GYRO: ("z",),
-    Sensor.ACCEL: ("x", "y"),
+    Sensor.ACCEL: ("x", "y", "lateral"),     # "lateral": a ground vehicle's only (its innovation has 3 rows)
 }
 UNITS: dict[Sensor, str] = {Sensor.GNSS_POS: "m", Sensor.GNSS_VEL: "m/s", Sensor.MAG: "rad", Sensor.GYRO: "rad/s",
                             Sensor.ACCEL: "m/s^2"}

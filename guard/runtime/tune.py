@@ -14,8 +14,9 @@ when the model fits. From logs without an attack, guard tune fits, in this order
    or receiver sits well inside its model sample by sample while its mean over a second wanders,
    and a CUSUM sums the wander: fitted to the samples alone, the noise came out smaller and the
    same logs raised more alarms with the profile than without it);
-3. the compass's offset (`filter.mag_offset_rad`) and, on wheels, their slip (`filter.slip_rad_per_mps2`):
-   what the filter learnt, averaged over the logs;
+3. the compass's offset (`filter.mag_offset_rad`) and, on wheels, their slip (`filter.slip_rad_per_mps2`)
+   and how far ahead of the axle the sensors sit (`filter.sensors_ahead_m`): what the filter learnt,
+   averaged over the logs;
 4. whether one noise level fits every flight: if any one log's innovations, on any sensor, pass
    the tuned model (a factor over 1) and its test comes within NEAR of its threshold (`unfitted`),
    it does not, and the profile lets each test widen in flight by the wander it measures
@@ -41,7 +42,7 @@ from pathlib import Path
 import tomli_w
 
 from guard.config import Config, table
-from guard.core.ekf import BM, KS, FilterConfig
+from guard.core.ekf import BM, KS, LA, FilterConfig
 from guard.core.longrun import BLOCK, F_MAX, BlockMeans, normalised
 from guard.errors import GuardError
 from guard.model.events import Estimate, Tested
@@ -76,6 +77,7 @@ class Innovations(Sink):
         self.blocks: dict[Sensor, int] = {}
         self.mag_offset: float | None = None
         self.slip: float | None = None
+        self.ahead: float | None = None
 
     def on_events(self, events) -> None:
         for e in events:
@@ -93,6 +95,7 @@ class Innovations(Sink):
             elif isinstance(e, Estimate):
                 self.mag_offset = float(e.x[BM])
                 self.slip = float(e.x[KS])
+                self.ahead = float(e.x[LA])
 
     def factor(self, sensor: Sensor) -> float | None:
         """The innovations' standard deviation over the model's: the samples', or their wander's
@@ -115,7 +118,7 @@ def measure(logs: list[str], cfg: Config, each: list | None = None) -> tuple[Inn
     """Replay every log with cfg; the innovations of all of them, and each one's report (and each
     one's innovations into `each`, if given)."""
     sink, reports = Innovations(), []
-    offsets, slips = [], []
+    offsets, slips, aheads = [], [], []
     for log in logs:
         one = Innovations()
         reports.append(replay(log, cfg, listeners=[one]))
@@ -130,8 +133,10 @@ def measure(logs: list[str], cfg: Config, each: list | None = None) -> tuple[Inn
         if one.mag_offset is not None:
             offsets.append(one.mag_offset)
             slips.append(one.slip)
+            aheads.append(one.ahead)
     sink.mag_offset = sum(offsets) / len(offsets) if offsets else None
     sink.slip = sum(slips) / len(slips) if slips else None
+    sink.ahead = sum(aheads) / len(aheads) if aheads else None
     return sink, reports
 
 
@@ -181,8 +186,10 @@ def tune(logs: list[str], base: Config, say: Callable[[str], None] = print) -> t
     # 3. the compass's offset
     sink, reports = measure(logs, cfg)
     if sink.mag_offset is not None:
-        # an air vehicle's slip is never learnt: it stays where it started, and the profile leaves it out
-        cfg = with_filter(cfg, mag_offset_rad=sink.mag_offset, slip_rad_per_mps2=min(max(sink.slip, 0.0), 0.05))
+        # an air vehicle's slip and lever arm are never learnt: they stay where they started, and the
+        # profile leaves them out
+        cfg = with_filter(cfg, mag_offset_rad=sink.mag_offset, slip_rad_per_mps2=min(max(sink.slip, 0.0), 0.05),
+                          sensors_ahead_m=min(max(sink.ahead, -3.0), 3.0))
     for sensor in KEYS:
         f = sink.factor(sensor)
         if f is not None:

@@ -93,18 +93,20 @@ def test_accelerometer_bias_along_track_is_ambiguous(tmp_path):
 
 @pytest.mark.parametrize("sign", [+1.0, -1.0])
 def test_a_sideways_accelerometer_bias_is_named_once_and_cleared_after(tmp_path, sign):
-    """A wheel does not slide: a lateral accelerometer bias pushes the filter's own track sideways
-    from a GNSS course that still agrees with the heading. Named (y, left positive, so the FRD
-    bias's opposite sign), held out while it reads sideways what the wheels do not do, back after.
-    Seeds 5 and 32 put the course 2.0 and 2.4 standard errors off the heading at the alarm."""
+    """A wheel does not slide: a lateral accelerometer bias builds a sideways velocity the wheels'
+    constraint holds back, whose innovation is tested as the accelerometer's "lateral" channel.
+    Named (the offset in y, left positive, so the FRD bias's opposite sign) within 2 s, held out
+    while it reads sideways what the wheels do not do, back after. Seeds 5 and 32 put the course 2.0
+    and 2.4 standard errors off the heading at the alarm."""
     for seed in (0, 1, 2, 5, 32):
         tlog, truth = simulate(tmp_path, Attack("bias", "accel", "y", 0.5 * sign, START_S, 10.0), seed, 60.0)
         k0 = truth["attacks"][0]["start_gnss_index"]
         events = events_of(tlog)
         a = first_alarm(events, truth["attacks"][0])
-        assert (a.sensor, a.channel, a.ambiguous_with) == ("accel", "y", ()), f"seed {seed}: {a}"
+        assert (a.sensor, a.channel, a.ambiguous_with) == ("accel", "lateral", ()), f"seed {seed}: {a}"
+        assert a.t_us - truth["attacks"][0]["start_time_usec"] <= 2e6, f"seed {seed}: late"
         assert a.offset == pytest.approx(-0.5 * sign, abs=0.2), f"seed {seed}: {a}"
-        accel = [e for e in events if isinstance(e, (Alarm, Cleared)) and e.sensor == "accel" and e.channel == "y"]
+        accel = [e for e in events if isinstance(e, (Alarm, Cleared)) and e.sensor == "accel" and e.channel == "lateral"]
         assert [type(e) for e in accel] == [Alarm, Cleared], f"seed {seed}: {accel}"
         assert k0 + 100 < accel[1].gnss_index <= k0 + 100 + 80, f"seed {seed}: cleared at {accel[1].gnss_index}"
         assert all(not isinstance(e, Alarm) or e.sensor == "accel" for e in events), "nothing else blamed"

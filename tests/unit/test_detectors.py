@@ -333,6 +333,29 @@ def test_reset_clears_every_channel():
         assert stat[0] == pytest.approx(1.0 if name == "paper" else 0.0)
 
 
+@pytest.mark.parametrize("name", ["cusum", "paper", "gate", "chi2"])
+def test_a_sensor_that_gains_a_channel_is_tested_on_all_of_them(name):
+    """A vehicle found to be on wheels (the autopilot's word after the first samples) gains the
+    accelerometer's "lateral" channel: every detector tests the three from then on, and a shift on
+    the new one alarms there."""
+    det = make_detector(dataclasses.replace(ONE, name=name, gate_persist_s=0.1), n_channels=3)
+    rng = np.random.default_rng(5)
+    feed(det, "accel", rng.normal(size=(30, 2)), np.eye(2))
+    feed(det, "accel", rng.normal(size=(15, 3)), np.eye(3), t0=30 * DT_US)    # (the paper's band: its warm-up)
+    hits = []
+    for i in range(40):
+        stat, thr, alarms = det.test("accel", (45 + i) * DT_US, np.array([0.0, 0.0, 12.0]), np.eye(3))
+        assert len(stat) == len(thr) == 3
+        hits += alarms
+    assert hits and {i for i, _ in hits} == {2}
+
+
+def test_chi2_quantile_of_three_degrees_of_freedom():
+    from guard.core.detectors.baselines import chi2_quantile
+    for p, x in ((0.05, 7.814727903), (1e-6, 30.66469)):
+        assert chi2_quantile(p, 3) == pytest.approx(x, rel=1e-5)
+
+
 # -- the core on a synthetic drive (tests/unit/synthetic.py) --------------------------------------------
 @pytest.mark.parametrize("speed, yaw", [(0.0, math.radians(30.0)), (5.0, 0.0)])
 def test_core_no_alarm_on_clean_data(speed, yaw):

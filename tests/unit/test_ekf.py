@@ -17,7 +17,7 @@ from filterpy.kalman import ExtendedKalmanFilter
 
 from guard.core.aiding.gnss import H_POS, gnss_velocity_model
 from guard.core.aiding.imu import H_IMU, H_IMU_NO_MAG, ImuAiding
-from guard.core.ekf import AX, AY, BAX, BAY, BM, BW, KS, N_STATES, TH, VX, VY, W, X, Y, FilterConfig, NavEKF
+from guard.core.ekf import AX, AY, BAX, BAY, BM, BW, KS, LA, N_STATES, TH, VX, VY, W, X, Y, FilterConfig, NavEKF
 
 
 # -- oracles written from the docstring -------------------------------------------------------------
@@ -49,7 +49,7 @@ def process_noise(cfg: FilterConfig, T: float) -> np.ndarray:
     """Q = diag(q^2) T, q the random-walk rates of the config, in state order."""
     q = [cfg.q_pos_m, cfg.q_pos_m, cfg.q_heading_rad, cfg.q_vel_mps, cfg.q_vel_mps, cfg.q_yaw_rate_radps,
          cfg.q_accel_mps2, cfg.q_accel_mps2, cfg.q_gyro_bias_radps, cfg.q_accel_bias_mps2, cfg.q_accel_bias_mps2, cfg.q_mag_offset_rad,
-         cfg.q_slip_rad_per_mps2]
+         cfg.q_slip_rad_per_mps2, cfg.q_sensors_ahead_m]
     return np.diag(np.square(q)) * T
 
 
@@ -61,6 +61,7 @@ def random_state(rng: np.random.Generator) -> np.ndarray:
     x[W] = rng.uniform(-1.0, 1.0)
     x[[BW, BAX, BAY]] *= 0.05
     x[KS] = rng.uniform(0.0, 0.02)
+    x[LA] = rng.uniform(-0.5, 1.5)
     return x
 
 
@@ -245,12 +246,13 @@ def test_heading_update_across_pi_matches_filterpy_with_wrapped_residual():
 # -- steady state against the DARE ------------------------------------------------------------------
 T_DARE = 0.1
 V0 = 5.0
-N_PAPER = 11                # the paper's states: all but the compass offset and the wheels' slip
+N_PAPER = 11                # the paper's states: all but the compass offset, the wheels' slip and lever arm
 
 
 def PAPER_ONLY(centripetal: bool) -> FilterConfig:
     return FilterConfig(centripetal=centripetal, p0_mag_offset_rad=0.0, q_mag_offset_rad=0.0,
-                        p0_slip_rad_per_mps2=0.0, q_slip_rad_per_mps2=0.0)
+                        p0_slip_rad_per_mps2=0.0, q_slip_rad_per_mps2=0.0, p0_sensors_ahead_m=0.0,
+                        q_sensors_ahead_m=0.0)
 
 
 def run_to_steady_state(centripetal: bool, v0: float, T: float = T_DARE, tol: float = 1e-14, max_steps: int = 50_000):
@@ -365,7 +367,8 @@ def test_P_stays_symmetric_positive_definite():
     truth = np.zeros(N_STATES)
     truth[VX] = 8.0
     truth[KS] = 0.01
-    ekf = NavEKF(cfg, truth + rng.normal(0.0, 0.5, N_STATES) * [2, 2, 0.3, 1, 1, 0.1, 1, 1, 0.01, 0.1, 0.1, 0.05, 0.005])
+    ekf = NavEKF(cfg, truth + rng.normal(0.0, 0.5, N_STATES) * [2, 2, 0.3, 1, 1, 0.1, 1, 1, 0.01, 0.1, 0.1, 0.05, 0.005,
+                                                              0.5])
     ground = ImuAiding(cfg)
     for step in range(10_000):
         T = rng.uniform(0.001, 0.3)
@@ -409,13 +412,14 @@ def test_P_stays_symmetric_positive_definite():
 
 # -- the wheels' slip -----------------------------------------------------------------------------------
 def test_the_slip_constraint_is_linearised_at_the_state():
-    """Ground vehicles: h(x) = v_y + k_s theta_dot v_x |v_x| (the sideways velocity less the slip the
-    filter has learnt); its row of H is the derivative of h, forwards and in reverse."""
+    """Ground vehicles: h(x) = v_y - d theta_dot + k_s theta_dot v_x |v_x| (the sideways velocity less
+    the sensors' swing ahead of the axle and the slip the filter has learnt); its row of H is the
+    derivative of h, forwards and in reverse."""
     rng = np.random.default_rng(21)
     aiding = ImuAiding(FilterConfig())
 
     def h(x):
-        return x[VY] + x[KS] * x[W] * x[VX] * abs(x[VX])
+        return x[VY] - x[LA] * x[W] + x[KS] * x[W] * x[VX] * abs(x[VX])
     for _ in range(50):
         x = random_state(rng)
         aid, _, _ = aiding.measurement(x, 0.1, x[W], 0.0, 0.0, True)
@@ -426,8 +430,8 @@ def test_the_slip_constraint_is_linearised_at_the_state():
 
 
 def test_the_learnt_vehicle_is_held_while_a_test_is_near_its_threshold():
-    """learning False: the compass offset and the wheels' slip are consider states, their gains zeroed;
-    the rest of the state is updated as before."""
+    """learning False: the compass offset, the wheels' slip and the sensors' place ahead of the axle are
+    consider states, their gains zeroed; the rest of the state is updated as before."""
     x0 = np.zeros(N_STATES)
     x0[VX], x0[W] = 8.0, 0.3
     aiding = ImuAiding(FilterConfig())
@@ -439,8 +443,9 @@ def test_the_learnt_vehicle_is_held_while_a_test_is_near_its_threshold():
         aid.z[-1] = 0.0
         innovate_and_fuse(ekf, aid.z, aid.hx + np.r_[0.0, 0.0, 0.0, 0.0, 0.3], aid.H, aid.R, angle_rows=angle)
         moved[learning] = ekf.x - x0
-    assert moved[True][KS] != 0.0 and moved[True][BM] != 0.0
-    assert moved[False][KS] == 0.0 and moved[False][BM] == 0.0 and moved[False][VY] != 0.0
+    assert moved[True][KS] != 0.0 and moved[True][BM] != 0.0 and moved[True][LA] != 0.0
+    assert moved[False][KS] == 0.0 and moved[False][BM] == 0.0 and moved[False][LA] == 0.0
+    assert moved[False][VY] != 0.0
 
 
 def test_an_air_vehicle_yaws_faster_than_a_car_and_a_held_heading_stays_held():

@@ -115,3 +115,17 @@ def test_a_wandering_compass_alarms_as_the_model_says_and_not_widened_and_an_att
 
 def test_off_by_default():
     assert MonitorConfig().max_wander_factor == 1.0
+
+
+def test_a_sensor_that_gains_a_channel_starts_its_wander_again():
+    """The accelerometer gains its "lateral" channel when the vehicle is found on wheels: the wander
+    learnt on two channels is not applied to three, and is learnt afresh."""
+    lr = LongRun()
+    for i, z in enumerate(ar1(200 * BLOCK, 0.9, 0.5, 4)):
+        lr.add(Sensor.ACCEL, T0_US + i * 20_000, np.array([z, z]), np.eye(2))
+    assert lr.factors(Sensor.ACCEL).max() > 1.5
+    assert np.array_equal(lr.scale(Sensor.ACCEL, np.eye(3)), np.eye(3))
+    t0 = T0_US + 200 * BLOCK * 20_000
+    for i, z in enumerate(np.random.default_rng(4).normal(0.0, 1.0, 2 * BLOCK)):
+        lr.add(Sensor.ACCEL, t0 + i * 20_000, np.array([z, z, z]), np.eye(3))
+    assert lr.factors(Sensor.ACCEL).shape == (3,)

@@ -3,7 +3,7 @@ specific force, fused as one stacked measurement and tested sensor by sensor.
 
     z = (theta_mag, omega_z, a_x, a_y[, 0])    h(x) = H x, but for the constraint's row
     H rows: theta + b_psi;  theta_dot + b_theta_dot;  a_x + b_ax;  a_y + b_ay;
-            [ground vehicles: v_y + k_s theta_dot v_x |v_x| = 0, linearised at the state]
+            [ground vehicles: v_y - d theta_dot + k_s theta_dot v_x |v_x| = 0, linearised at the state]
 A tilted IMU (a flying drone) is first levelled with the autopilot's roll and pitch, and a fast IMU
 averaged down to `imu_fusion_hz` (as PX4's EKF2 does): the mean of the samples since the last fusion
 is fused at the last one's time, which keeps a 250 Hz IMU affordable on a companion computer.
@@ -26,7 +26,7 @@ from collections import deque
 import numpy as np
 
 from guard.core.aiding import Aid
-from guard.core.ekf import AX, AY, BAX, BAY, BM, BW, KS, N_STATES, TH, VX, VY, W, FilterConfig
+from guard.core.ekf import AX, AY, BAX, BAY, BM, BW, KS, LA, N_STATES, TH, VX, VY, W, FilterConfig
 from guard.core.history import ImuFusion
 from guard.model.samples import ImuSample
 from guard.model.sensors import Sensor
@@ -284,11 +284,12 @@ class ImuAiding:
         R = np.diag(np.square(sig))
         angle = (0,) if theta is not None else ()
         hx = H @ x
-        if ground:      # v_y + k_s theta_dot v_x |v_x| = 0: the slip the filter has learnt is no skid
-            vx, w, ks = float(x[VX]), float(x[W]), float(x[KS])
-            H = H.copy()
-            H[-1, KS], H[-1, W], H[-1, VX] = w * vx * abs(vx), ks * vx * abs(vx), 2.0 * ks * w * abs(vx)
-            hx[-1] = x[VY] + ks * w * vx * abs(vx)
+        if ground:      # v_y - d theta_dot + k_s theta_dot v_x |v_x| = 0: the slip the filter has learnt
+            vx, w, ks, d = float(x[VX]), float(x[W]), float(x[KS]), float(x[LA])    # is no skid, nor
+            H = H.copy()                                                            # the sensors' swing
+            H[-1, KS], H[-1, W], H[-1, VX] = w * vx * abs(vx), ks * vx * abs(vx) - d, 2.0 * ks * w * abs(vx)
+            H[-1, LA] = -w
+            hx[-1] = x[VY] - d * w + ks * w * vx * abs(vx)
         return Aid(np.array(z), hx, H, R), blocks, angle
 
 

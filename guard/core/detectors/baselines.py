@@ -59,14 +59,14 @@ class ChiSquare(_Peaks):
         self._first_t: dict[str, int] = {}
 
     def _h(self, sensor: str, t_us: int, m: int) -> float:
-        h = self.h.get(sensor)
+        h = self.h.get((sensor, m))
         if h is None:
             t0 = self._first_t.setdefault(sensor, t_us)
             rate = 50.0 if t_us <= t0 else min(1000.0, 1e6 / (t_us - t0))
             p = 1.0 / (self.cfg.false_alarm_interval_h * 3600.0 * rate * self.n_tests)
             h = chi2_quantile(p, m)
             if t_us > t0:
-                self.h[sensor] = h
+                self.h[(sensor, m)] = h
         return h
 
     def test(self, sensor: str, t_us: int, r: np.ndarray, S: np.ndarray):
@@ -88,9 +88,20 @@ class ChiSquare(_Peaks):
 
 
 def chi2_quantile(p: float, dof: int) -> float:
-    """x with P(chi2_dof > x) = p, for dof 1 (from the normal quantile) and 2 (closed form)."""
+    """x with P(chi2_dof > x) = p, for dof 1 (from the normal quantile), 2 (closed form) and 3 (its tail,
+    2 (1 - Phi(sqrt x)) + sqrt(2 x / pi) exp(-x / 2), solved by bisection)."""
     if dof == 1:
         return NormalDist().inv_cdf(1.0 - p / 2.0) ** 2
     if dof == 2:
         return -2.0 * math.log(p)
-    raise ValueError("chi2_quantile: dof must be 1 or 2")
+    if dof == 3:
+        def tail(x: float) -> float:
+            return 2.0 * (1.0 - NormalDist().cdf(math.sqrt(x))) + math.sqrt(2.0 * x / math.pi) * math.exp(-x / 2.0)
+        lo, hi = 0.0, 1.0
+        while tail(hi) > p:
+            hi *= 2.0
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if tail(mid) > p else (lo, mid)
+        return 0.5 * (lo + hi)
+    raise ValueError("chi2_quantile: dof must be 1, 2 or 3")

@@ -86,7 +86,7 @@ class PageCusum(Detector):
     def test(self, sensor: str, t_us: int, r: np.ndarray, S: np.ndarray):
         chans = self.state.get(sensor)
         nk = len(self.ks)
-        if chans is None:
+        if chans is None or len(chans) != len(r):      # new, or its channels changed (a vehicle found on wheels)
             chans = self.state[sensor] = [_Page(nk) for _ in range(len(r))]
         hs = self._h(sensor, t_us)
         clip = self.cfg.shock_sigma if sensor in self.BOUNDED and self.cfg.shock_sigma > 0 else math.inf

@@ -30,7 +30,7 @@ class PaperCusum(_Peaks):
 
     def test(self, sensor: str, t_us: int, r: np.ndarray, S: np.ndarray):
         chans = self.state.get(sensor)
-        if chans is None:
+        if chans is None or len(chans) != len(r):      # new, or its channels changed (a vehicle found on wheels)
             chans = self.state[sensor] = [_Band() for _ in range(len(r))]
         n0, kappa = self.cfg.paper_warmup, self.cfg.paper_kappa
         stat, thr, alarms = [], [], []
