@@ -157,6 +157,7 @@ def test_a_vehicle_s_early_step_is_at_its_fifth_fix_and_its_bound_at_its_own_rat
         assert sc.rates.gnss_hz == car["gnss_hz"]
         assert sc.route.sideslip_rad_per_mps2 == car["sideslip_rad_per_mps2"] <= 0.015
         assert sc.route.max_yaw_jerk_radps3 == car["max_yaw_jerk_radps3"] >= 1.0
+        assert sc.route.sensors_ahead_m == car["sensors_ahead_m"] and -0.5 <= car["sensors_ahead_m"] <= 1.5
         assert sc.noise.imu_yaw_mount_deg == car["imu_yaw_mount_deg"]
         assert sc.attacks[0].start_s == pytest.approx(EARLY_SAMPLE / car["gnss_hz"])
     assert base_scenario(family, duration, attacks).attacks[0].start_s == pytest.approx(EARLY_SAMPLE / 10.0)

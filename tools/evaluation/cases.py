@@ -70,7 +70,8 @@ def base_scenario(family: str, duration: float, attacks: tuple, vehicle: dict | 
     sc = dataclasses.replace(base, name="eval", duration_s=duration, attacks=attacks)
     if vehicle:
         rates = {k: v for k, v in vehicle.items() if k in ("imu_hz", "gnss_hz")}
-        route = {k: v for k, v in vehicle.items() if k in ("sideslip_rad_per_mps2", "max_yaw_jerk_radps3")}
+        route = {k: v for k, v in vehicle.items() if k in ("sideslip_rad_per_mps2", "max_yaw_jerk_radps3",
+                                                             "sensors_ahead_m")}
         noise = {k: v for k, v in vehicle.items() if k not in rates and k not in route}
         sc = dataclasses.replace(sc, rates=dataclasses.replace(sc.rates, **rates),
                                  noise=dataclasses.replace(sc.noise, **noise),
@@ -84,7 +85,8 @@ def vehicle(seed: int) -> dict:
     0.05-0.3 m/s with or without the receiver reporting it, GNSS at 1-10 Hz, an IMU at 10-400 Hz with
     scale errors up to 3 % and mounted up to 3 degrees off; on wheels that slip (0 to 0.015 rad per m/s^2
     of lateral acceleration, a car's 0.005 to 0.01 within) and steer as a car does, the yaw acceleration
-    moving at 1 to 4 rad/s^3 (sim/vehicle.py). Drawn from the seed alone."""
+    moving at 1 to 4 rad/s^3 (sim/vehicle.py), the IMU and antenna 0.5 m behind to 1.5 m ahead of the
+    axle that does not slide. Drawn from the seed alone."""
     rng = random.Random(f"vehicle-{seed}")
     vel = rng.uniform(0.05, 0.3)
     return {"mag_offset_deg": rng.choice((-1, 1)) * rng.uniform(0.0, 5.0), "gnss_vel_white_mps": vel,
@@ -93,7 +95,9 @@ def vehicle(seed: int) -> dict:
             "accel_scale": rng.uniform(-0.03, 0.03), "gyro_scale": rng.uniform(-0.03, 0.03),
             "imu_yaw_mount_deg": rng.uniform(-3.0, 3.0),
             # drawn after the sensors, which stay what they were for every seed before the wheels slipped
-            "sideslip_rad_per_mps2": rng.uniform(0.0, 0.015), "max_yaw_jerk_radps3": rng.uniform(1.0, 4.0)}
+            "sideslip_rad_per_mps2": rng.uniform(0.0, 0.015), "max_yaw_jerk_radps3": rng.uniform(1.0, 4.0),
+            # drawn last: every vehicle is otherwise the one it was before its sensors had a place
+            "sensors_ahead_m": rng.uniform(-0.5, 1.5)}
 
 
 def sim_seed(family: str, attacks: tuple, seed: int) -> int:
