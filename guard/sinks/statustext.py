@@ -31,7 +31,10 @@ def alarm_text(e: Alarm, word: str = "ALARM") -> str:
     """At most 50 characters, readable on a ground station: sensor(s), axis, offset, GNSS sample.
     `word` "still": a standing alarm's repeat (the disagreement goes on)."""
     sensors = "|".join((e.sensor, *e.ambiguous_with))     # "mag|gyro": either, the physics cannot tell here
-    return f"GUARD {word} {sensors} {e.channel} {e.offset:+.3g}{UNITS[e.sensor]} k={e.gnss_index}"[:50]
+    text = f"GUARD {word} {sensors} {e.channel} {e.offset:+.3g}{UNITS[e.sensor]} k={e.gnss_index}"
+    if len(text) > 50:      # "accel|gnss_vel lateral": the unit goes before the GNSS sample's digits do
+        text = f"GUARD {word} {sensors} {e.channel} {e.offset:+.3g} k={e.gnss_index}"
+    return text[:50]
 
 
 def clear_text(e: Cleared) -> str:

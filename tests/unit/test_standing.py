@@ -102,3 +102,14 @@ def test_a_standing_alarm_goes_on_across_a_restart():
     before = [a for a in of(events, Alarm) if a.t_us < T0_US + 100e6]
     after = [a for a in of(events, Alarm) if a.t_us >= T0_US + 112e6]
     assert after and after[0].t_us - before[-1].t_us <= 30e6 and after[0].standing, (before[-1:], after[:1])
+
+
+def test_an_alarm_s_text_keeps_its_gnss_sample_whole():
+    """50 characters: an ambiguous alarm on the accelerometer's "lateral" channel drops its unit before
+    a digit of the GNSS sample it names."""
+    from guard.sinks.statustext import alarm_text
+    a = Alarm(1, 123456, Sensor.ACCEL, "lateral", 30.0, 20.0, -0.512, "cusum", (Sensor.GNSS_VEL,))
+    text = alarm_text(a)
+    assert len(text) <= 50 and text.endswith("k=123456") and "-0.512" in text, text
+    a = Alarm(1, 400, Sensor.GNSS_POS, "north", 30.0, 20.0, 10.2, "cusum", ())
+    assert alarm_text(a) == "GUARD ALARM gnss_pos north +10.2m k=400"
