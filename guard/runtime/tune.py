@@ -13,7 +13,8 @@ when the model fits. From logs without an attack, guard tune fits, in this order
    over blocks of guard.core.longrun.BLOCK samples, scaled to one sample's (a real copter's compass
    or receiver sits well inside its model sample by sample while its mean over a second wanders,
    and a CUSUM sums the wander: fitted to the samples alone, the noise came out smaller and the
-   same logs raised more alarms with the profile than without it);
+   same logs raised more alarms with the profile than without it). On wheels the sideways
+   constraint, tested with the accelerometer, is fitted apart (`lateral_sigma_mps`);
 3. the compass's offset (`filter.mag_offset_rad`) and, on wheels, their slip (`filter.slip_rad_per_mps2`)
    and how far ahead of the axle the sensors sit (`filter.sensors_ahead_m`): what the filter learnt,
    averaged over the logs;
@@ -56,25 +57,40 @@ BOUNDS = (0.5, 20.0)    # a floor is scaled within these factors of its default
 PASSES = 3
 MIN_BLOCKS = 10         # block means (times channels) before the wander is taken
 NEAR = 0.7              # a tuning log's test this near its threshold, on a sensor the model does not fit
+LATERAL = "lateral"     # on wheels, the accelerometer's third channel: the sideways constraint, fitted apart
 # the configuration keys each sensor's noise scales
-KEYS: dict[Sensor, tuple[str, ...]] = {
+KEYS: dict[str, tuple[str, ...]] = {
     Sensor.GNSS_POS: ("gnss_pos_sigma_m", "gnss_pos_unreported_m"),
     Sensor.GNSS_VEL: ("gnss_vel_sigma_mps", "gnss_vel_unreported_mps"),
     Sensor.MAG: ("heading_sigma_rad",),
     Sensor.GYRO: ("gyro_sigma_radps",),
     Sensor.ACCEL: ("accel_sigma_mps2",),
+    LATERAL: ("lateral_sigma_mps",),
 }
+
+
+def parts(sensor: Sensor, z) -> list[tuple[str, object]]:
+    """A tested innovation's channels by the keys that scale them: a ground vehicle's accelerometer
+    test holds the sideways constraint's too, whose noise is its own (`lateral_sigma_mps`)."""
+    if sensor == Sensor.ACCEL and len(z) == 3:
+        return [(Sensor.ACCEL, z[:2]), (LATERAL, z[2:])]
+    return [(sensor, z)]
+
+
+def tested_by(key: str) -> Sensor:
+    """The sensor whose test (and largest statistic) a key's channels are in."""
+    return Sensor.ACCEL if key == LATERAL else Sensor(key)
 
 
 class Innovations(Sink):
     """Sums of z^2 of the fused innovations per sensor, and the compass offset the filter ended with."""
 
     def __init__(self):
-        self.sum: dict[Sensor, float] = {}
-        self.n: dict[Sensor, int] = {}
-        self.block: dict[Sensor, BlockMeans] = {}
-        self.wander: dict[Sensor, float] = {}   # sum over closed blocks and channels of BLOCK zbar^2
-        self.blocks: dict[Sensor, int] = {}
+        self.sum: dict[str, float] = {}
+        self.n: dict[str, int] = {}
+        self.block: dict[str, BlockMeans] = {}
+        self.wander: dict[str, float] = {}   # sum over closed blocks and channels of BLOCK zbar^2
+        self.blocks: dict[str, int] = {}
         self.mag_offset: float | None = None
         self.slip: float | None = None
         self.ahead: float | None = None
@@ -83,15 +99,14 @@ class Innovations(Sink):
         for e in events:
             if isinstance(e, Tested) and e.innovation.fused:
                 i = e.innovation
-                s = i.sensor
-                z = normalised(i.r, i.S)
-                self.sum[s] = self.sum.get(s, 0.0) + float(z @ z)
-                self.n[s] = self.n.get(s, 0) + len(z)
-                closed = self.block.setdefault(s, BlockMeans()).add(z)
-                if closed is not None:
-                    zbar = closed[0]
-                    self.wander[s] = self.wander.get(s, 0.0) + BLOCK * float(zbar @ zbar)
-                    self.blocks[s] = self.blocks.get(s, 0) + len(z)
+                for s, z in parts(i.sensor, normalised(i.r, i.S)):
+                    self.sum[s] = self.sum.get(s, 0.0) + float(z @ z)
+                    self.n[s] = self.n.get(s, 0) + len(z)
+                    closed = self.block.setdefault(s, BlockMeans()).add(z)
+                    if closed is not None:
+                        zbar = closed[0]
+                        self.wander[s] = self.wander.get(s, 0.0) + BLOCK * float(zbar @ zbar)
+                        self.blocks[s] = self.blocks.get(s, 0) + len(z)
             elif isinstance(e, Estimate):
                 self.mag_offset = float(e.x[BM])
                 self.slip = float(e.x[KS])
@@ -141,7 +156,7 @@ def measure(logs: list[str], cfg: Config, each: list | None = None) -> tuple[Inn
 
 
 def unfitted(logs: list[str], each: list[Innovations],
-             reports: list[dict]) -> list[tuple[float, str, Sensor, float]]:
+             reports: list[dict]) -> list[tuple[float, str, str, float]]:
     """(factor, log name, sensor, largest statistic/threshold) for each log and sensor that the tuned
     model does not fit (its innovations over the model, a factor over 1) and whose test shows it (its
     largest statistic/threshold NEAR or more, replayed with the tuned model): a flight that one noise
@@ -150,7 +165,7 @@ def unfitted(logs: list[str], each: list[Innovations],
     blocks), and a sensor far from its threshold needs nothing."""
     return [(f, Path(log).name, sensor, peak) for log, one, r in zip(logs, each, reports) for sensor in KEYS
             if (f := one.factor(sensor)) is not None and f > 1.0
-            and (peak := r["peak_ratio"].get(sensor.value, 0.0)) >= NEAR]
+            and (peak := r["peak_ratio"].get(tested_by(sensor).value, 0.0)) >= NEAR]
 
 
 def gnss_z2(sink: Innovations) -> float:

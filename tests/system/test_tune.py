@@ -53,6 +53,18 @@ def test_tuned_on_clean_drives_the_held_out_one_is_quiet_and_its_attack_caught(d
     assert parse(tomllib.loads(text), "profile").monitor.filter.gnss_delay_s == pytest.approx(0.2)
 
 
+def test_on_wheels_the_sideways_constraint_is_fitted_apart_from_the_accelerometer(drives):
+    """The accelerometer's test holds the sideways constraint's channel on wheels; told the wheels hold
+    five times tighter than they do, tune widens the constraint (`lateral_sigma_mps`), not the
+    accelerometer's noise, which it fits as it does without the tight constraint."""
+    tight = parse({"filter": {"lateral_sigma_mps": 0.02}, "monitor": {"vehicle": "ground"}}, "base")
+    plain = parse({"monitor": {"vehicle": "ground"}}, "base")
+    fitted = {name: tune([drives[1], drives[2]], cfg, say=lambda line: None)[0]["filter"]
+              for name, cfg in (("tight", tight), ("plain", plain))}
+    assert fitted["tight"]["lateral_sigma_mps"] > 0.04, fitted["tight"]
+    assert fitted["tight"]["accel_sigma_mps2"] == pytest.approx(fitted["plain"]["accel_sigma_mps2"], rel=0.15)
+
+
 def test_the_cli_writes_a_profile_and_names_a_missing_log(drives, tmp_path):
     """The profile works alone with --config: it holds what tune fitted and the settings of the config
     it started from (a ground vehicle, which changes the fit; a link), said in its header."""
