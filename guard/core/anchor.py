@@ -35,8 +35,8 @@ def initial_state(fix: GnssFix, theta_mag: float | None, b0: float, k0: float = 
 @dataclass(frozen=True)
 class Learnt:
     """What a filter learnt of the vehicle, not of the moment: the compass's offset b_psi, the
-    wheels' slip k_s and the sensors' place ahead of the axle d, with their variances. A filter started again on the same vehicle (a reboot)
-    starts from them."""
+    wheels' slip k_s and the sensors' place ahead of the axle d, with their variances. A filter
+    started again on the same vehicle (a reboot) starts from them."""
 
     b_psi: float
     var_b_psi: float

@@ -150,7 +150,8 @@ class FilterConfig:
     p0_sensors_ahead_m: float = 1.0   # d: a car's autopilot or antenna, mid-car, within 1.5 sigma of the axle
     mag_offset_rad: float = 0.0       # the compass's offset, where known (guard tune): the learnt b_psi starts here
     slip_rad_per_mps2: float = 0.0    # the wheels' slip, where known (guard tune): the learnt k_s starts here
-    sensors_ahead_m: float = 0.0      # the sensors ahead of the axle, where known (guard tune): the learnt d starts here
+    sensors_ahead_m: float = 0.0      # the sensors ahead of the axle, where known (guard tune): the learnt d
+                                      # starts here
 
 
 class NavEKF:

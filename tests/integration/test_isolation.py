@@ -106,7 +106,8 @@ def test_a_sideways_accelerometer_bias_is_named_once_and_cleared_after(tmp_path,
         assert (a.sensor, a.channel, a.ambiguous_with) == ("accel", "lateral", ()), f"seed {seed}: {a}"
         assert a.t_us - truth["attacks"][0]["start_time_usec"] <= 2e6, f"seed {seed}: late"
         assert a.offset == pytest.approx(-0.5 * sign, abs=0.2), f"seed {seed}: {a}"
-        accel = [e for e in events if isinstance(e, (Alarm, Cleared)) and e.sensor == "accel" and e.channel == "lateral"]
+        accel = [e for e in events
+                 if isinstance(e, (Alarm, Cleared)) and e.sensor == "accel" and e.channel == "lateral"]
         assert [type(e) for e in accel] == [Alarm, Cleared], f"seed {seed}: {accel}"
         assert k0 + 100 < accel[1].gnss_index <= k0 + 100 + 80, f"seed {seed}: cleared at {accel[1].gnss_index}"
         assert all(not isinstance(e, Alarm) or e.sensor == "accel" for e in events), "nothing else blamed"
