@@ -429,6 +429,24 @@ def test_the_slip_constraint_is_linearised_at_the_state():
         np.testing.assert_array_equal(aid.H[:-1], H_IMU)            # the sensors' rows are linear
 
 
+def test_a_rewind_re_fuses_the_constraint_as_it_was_linearised():
+    """The history keeps each IMU fusion as (z, H), and a rewind predicts each row as H x. The
+    constraint is not linear (h(x) is not H x where the slip, the lever arm and the yaw rate are
+    not 0): its z is kept as r + H x, so that at the state it was fused at a rewind finds the same
+    innovation, and elsewhere h linearised there."""
+    from guard.core.aiding.imu import IMU_BLOCKS, fuse_rows, row_sensors
+    rng = np.random.default_rng(8)
+    aiding = ImuAiding(FilterConfig())
+    for _ in range(20):
+        x = random_state(rng)
+        ekf = NavEKF(FilterConfig(), x)
+        aid, _, angle = aiding.measurement(ekf.x, 0.1, x[W] + 0.01, 0.0, 0.3, True)
+        r, S, PHT = ekf.innovation(aid.z, aid.hx, aid.H, aid.R, angle_rows=angle)
+        kept = fuse_rows(ekf, 0, aid, r, S, PHT, list(range(len(r))), angle, row_sensors(IMU_BLOCKS, True))
+        assert kept.z[-1] - kept.H[-1] @ x == pytest.approx(r[-1], abs=1e-9)
+        np.testing.assert_array_equal(kept.z[:-1], aid.z[:-1])      # the sensors' rows as they were
+
+
 def test_the_learnt_vehicle_is_held_while_a_test_is_near_its_threshold():
     """learning False: the compass offset, the wheels' slip and the sensors' place ahead of the axle are
     consider states, their gains zeroed; the rest of the state is updated as before."""

@@ -296,13 +296,19 @@ class ImuAiding:
 def fuse_rows(ekf, t_us: int, aid: Aid, r: np.ndarray, S: np.ndarray, PHT: np.ndarray, keep: list[int],
               angle: tuple[int, ...], sensors: tuple[Sensor | None, ...]) -> ImuFusion | None:
     """Fuse the rows `keep` of a stacked measurement (those of the sensors in use); the fusion as the
-    history keeps it, each row with its sensor (`sensors`, row_sensors), for a rewind (None: nothing fused)."""
+    history keeps it, each row with its sensor (`sensors`, row_sensors), for a rewind (None: nothing fused).
+    A rewind predicts each row as H x: the constraint, not linear, is kept linearised at this state
+    (its z taken as r + H x, so that H x' at another state x' is h(x) + H (x' - x))."""
+    z = aid.z
+    if sensors and sensors[-1] is None:
+        z = z.copy()
+        z[-1] = r[-1] + float(aid.H[-1] @ ekf.x)
     if len(keep) == len(r):
         ekf.fuse(r, S, aid.H, aid.R, PHT)
-        return ImuFusion(t_us, aid.z, aid.H, aid.R, angle, sensors)
+        return ImuFusion(t_us, z, aid.H, aid.R, angle, sensors)
     if not keep:
         return None
     ix = np.ix_(keep, keep)
     ekf.fuse(r[keep], S[ix], aid.H[keep], aid.R[ix], PHT[:, keep])
-    return ImuFusion(t_us, aid.z[keep], aid.H[keep], aid.R[ix], angle if keep[0] == 0 else (),
+    return ImuFusion(t_us, z[keep], aid.H[keep], aid.R[ix], angle if keep[0] == 0 else (),
                      tuple(sensors[i] for i in keep))
