@@ -27,6 +27,7 @@ class Health:
         self.agreed: Counter[Sensor] = Counter()    # excluded sensor -> consistent samples since then
         self.with_receiver: set[Sensor] = set()     # excluded with the receiver, not by an alarm of its own
         self.accel_ref: float | None = None         # a laterally biased accelerometer's bias before the attack
+        self.lateral = False                        # the accelerometer's "lateral" channel is tested (on wheels)
         self.latched: set[Sensor] = set()           # fused again without being cleared (re-anchored): the alarm stands
         self.offsets: dict[Sensor, float] = {}      # the size of each excluded sensor's alarm (its estimated shift)
 
@@ -75,7 +76,11 @@ class Health:
             self.latched.add(sensor)
             return []
         self.latched.discard(sensor)
-        return [Cleared(t_us, gnss_index, sensor, c) for c in CHANNELS[sensor]]
+        return [Cleared(t_us, gnss_index, sensor, c) for c in self.channels(sensor)]
+
+    def channels(self, sensor: Sensor) -> tuple[str, ...]:
+        """The channels a sensor's test has: the accelerometer's "lateral" on wheels only."""
+        return CHANNELS[sensor] if self.lateral else tuple(c for c in CHANNELS[sensor] if c != "lateral")
 
     def alarmed(self) -> set[Sensor]:
         """The sensors whose alarm stands: excluded by an alarm of their own, or latched."""
@@ -87,4 +92,4 @@ class Health:
         Returns the Cleared events and the sensors whose alarm is carried over, latched."""
         gone = self.alarmed()
         kept = gone & set(RECEIVER)
-        return [Cleared(t_us, gnss_index, s, c) for s in sorted(gone - kept) for c in CHANNELS[s]], kept
+        return [Cleared(t_us, gnss_index, s, c) for s in sorted(gone - kept) for c in self.channels(s)], kept

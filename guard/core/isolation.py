@@ -60,7 +60,8 @@ class CourseWitness(NamedTuple):      # one GNSS velocity at speed (ground vehic
     r: float                          # course - (heading + the filter's sideways velocity's angle)
     sigma: float
     t_us: int
-    course: float
+    course: float                     # the heading the course shows: the course less the sideways angle the
+                                      # wheels allow (the sensors' swing ahead of the axle, the tyres' slip)
     speed: float
     r0: float                         # course - (heading + the angle of the sideways velocity the wheels allow)
 
@@ -79,12 +80,19 @@ class Witnesses:
         self.min_speed = max(2.0 * freeze_speed_mps, 0.5)
         self.course: deque[CourseWitness] = deque()
         self.mag: deque[HeadingWitness] = deque()
+        self.side: deque[tuple[int, float, float, float]] = deque()   # every IMU fusion on wheels, compass
+                                                                        # or not: (t, yaw rate, a_y, v_x)
         self.course_run: deque[CourseWitness] = deque()     # the same over RUN_S: an alarm's whole run
         self.mag_run: deque[HeadingWitness] = deque()
         self.last_vel = (np.zeros(2), np.eye(2))   # the latest GNSS velocity innovation and its S
         self.vel_sigma = f.gnss_vel_sigma_mps       # the latest fix's velocity noise (its R)
         self.turned = 0.0                           # how far the compass turned from the gyro over the last
                                                     # run that named it (rad, compass_turned)
+
+    def add_side(self, t_us: int, rate: float, ay: float, vx: float) -> None:
+        """One IMU fusion of a ground vehicle: what the lateral accelerometer read, for its offset."""
+        self.side.append((t_us, rate, ay, vx))
+        keep_since(self.side, t_us - 2 * WITNESS_S * 1e6 + 1)
 
     def add_heading(self, w: HeadingWitness) -> None:
         self.mag.append(w)
@@ -104,18 +112,18 @@ class Witnesses:
         course = math.atan2(fix.vel_n_mps, fix.vel_e_mps)
         # against the heading and what the wheels allow alone: the sensors' swing ahead of the axle and
         # the tyres' slip, as the filter has learnt them (the constraint without the filter's own v_y)
-        allowed = x[LA] * x[W] - x[KS] * x[W] * x[VX] * abs(x[VX])
-        r0 = math.remainder(course - x[TH] - math.atan2(allowed, x[VX]), math.tau)
-        r = math.remainder(r0 - math.atan2(x[VY], x[VX]), math.tau)    # against the filter's track
+        allowed = math.atan2(x[LA] * x[W] - x[KS] * x[W] * x[VX] * abs(x[VX]), x[VX])
+        r0 = math.remainder(course - x[TH] - allowed, math.tau)
+        r = math.remainder(course - x[TH] - math.atan2(x[VY], x[VX]), math.tau)    # against the filter's track
         self.course.append(CourseWitness(r, math.sqrt((vel_sigma / speed) ** 2 + P_heading),
-                                         fix.t_us - int(self.f.gnss_delay_s * 1e6), course, speed, r0))
+                                         fix.t_us - int(self.f.gnss_delay_s * 1e6), course - allowed, speed, r0))
         keep_since(self.course, self.course[-1].t_us - 2 * WITNESS_S * 1e6 + 1, at=2)
         self.course_run.append(self.course[-1])
         keep_since(self.course_run, self.course[-1].t_us - RUN_S * 1e6, at=2)
 
     def fresh(self, t_us: int) -> bool:
-        """A magnetometer heard within the last second."""
-        return bool(self.mag) and t_us - self.mag[-1].t_us < 1e6
+        """A lateral accelerometer's reading within the last second (on wheels)."""
+        return bool(self.side) and t_us - self.side[-1][0] < 1e6
 
     def isolate(self, sensor: Sensor, now_us: int, gyro_bias: float, run: tuple[int, float] | None = None
                 ) -> tuple[Sensor, tuple[Sensor, ...], str | None]:
@@ -157,7 +165,9 @@ class Witnesses:
         """Which sensor an alarm on the accelerometer's "lateral" channel names (see the module's
         docstring), what it cannot rule out, and the channel."""
         turns = self.turns(now_us, gyro_bias)
-        if turns is not None and turns[1] is not None:
+        if turns is None:       # no compass: the heading the course is held against is the gyro's alone
+            return Sensor.ACCEL, (Sensor.GNSS_VEL, Sensor.GYRO), "lateral"
+        if turns[1] is not None:
             z_gm, z_gc, z_mc = turns
             if min(abs(z_gm), abs(z_gc)) >= TURN_Z[0] and abs(z_mc) < TURN_Z[1]:
                 return Sensor.GYRO, (), None
@@ -245,12 +255,15 @@ class Witnesses:
         # by more than chance: the best of n - 1 splits beats a line on noise alone by a few sigma^2
         return rss_line - float(np.min(left + right)) > JUMP_Z2 * self.f.heading_sigma_rad ** 2
 
-    def lateral_bias(self, gyro_bias: float, window_s: float = 2 * WITNESS_S) -> float:
+    def lateral_bias(self, gyro_bias: float, window_s: float = 2 * WITNESS_S, ahead: float = 0.0) -> float:
         """The lateral accelerometer's offset over the last window_s (2 s at most): its mean reading less
         the centripetal acceleration of a wheel that does not slide, yaw rate (less the filter's gyro
-        bias) x speed."""
-        t, _, rate, ay, vx = np.array([w for w in self.mag if w.t_us >= self.mag[-1].t_us - window_s * 1e6]).T
-        return float(np.mean(ay - (rate - gyro_bias) * vx))
+        bias) x speed, and less what the sensors `ahead` of the axle feel as the yaw rate changes
+        (ahead x the yaw acceleration: over the window, ahead x the yaw rate's change / its length)."""
+        t, rate, ay, vx = np.array([w for w in self.side if w[0] >= self.side[-1][0] - window_s * 1e6]).T
+        span = (t[-1] - t[0]) / 1e6
+        swing = ahead * (rate[-1] - rate[0]) / span if span > 0 else 0.0
+        return float(np.mean(ay - (rate - gyro_bias) * vx)) - swing
 
     def gyro_bias(self) -> float:
         """The gyro's offset from the magnetometer: mean yaw rate minus the slope of the heading (last 2 s)."""

@@ -15,7 +15,7 @@ import numpy as np
 
 from guard.core.detectors import Detector
 from guard.core.anchor import anchor
-from guard.core.ekf import BAY, BW, X, Y, NavEKF
+from guard.core.ekf import BAY, BW, LA, X, Y, NavEKF
 from guard.core.health import Health
 from guard.core.history import History
 from guard.core.isolation import TURN_Z, Witnesses
@@ -80,7 +80,7 @@ class Judge:
                 continue
             channel = CHANNELS[sensor][i] if named == sensor else channel or CHANNELS[named][0]
             if named != sensor or lateral:      # a witness named it: its own offset, not the alarm's
-                offset = self._witnessed(named, channel, lateral, bw, float(ekf.x[BAY]))
+                offset = self._witnessed(named, channel, lateral, bw, float(ekf.x[BAY]), float(ekf.x[LA]))
             events.append(Alarm(t_us, gnss_index, named, channel, stat[i], thr[i], offset,
                                 self.detector.name, ambiguous, standing=self.record_alarm(named, t_us)))
             if not self.cfg.exclude_on_alarm:
@@ -104,11 +104,11 @@ class Judge:
                 ekf.x[BAY] = health.accel_ref
         return events
 
-    def _witnessed(self, named: Sensor, channel: str, lateral: bool, bw: float, bay: float) -> float:
+    def _witnessed(self, named: Sensor, channel: str, lateral: bool, bw: float, bay: float, ahead: float) -> float:
         """The offset of a sensor a witness named, in its own unit: the gyro's bias, the compass's turn,
         the GNSS velocity's innovation on its axis, the lateral accelerometer's mean reading less the
-        centripetal acceleration (over the last LATERAL_S for a "lateral" alarm; the filter's bias
-        without a magnetometer's witnesses)."""
+        centripetal acceleration and the sensors' swing (over the last LATERAL_S for a "lateral" alarm;
+        the filter's bias where the accelerometer has no witness)."""
         w = self.witnesses
         if named == Sensor.GYRO:
             return w.gyro_bias()
@@ -116,9 +116,9 @@ class Judge:
             return w.turned
         if named == Sensor.GNSS_VEL:
             return float(w.last_vel[0][CHANNELS[named].index(channel)])
-        if not w.mag:
+        if not w.side:
             return bay
-        return w.lateral_bias(bw, LATERAL_S) if lateral else w.lateral_bias(bw)
+        return w.lateral_bias(bw, LATERAL_S if lateral else 2.0, ahead)
 
     def _run(self, sensor: Sensor) -> tuple[int, float] | None:
         """A GNSS velocity alarm's run, to weigh the compass over: the time of the epoch it began at (one
@@ -164,7 +164,7 @@ class Judge:
         if sensor == Sensor.ACCEL:              # it still reads sideways what the wheels do not do
             ref = self.health.accel_ref
             return ref is not None and witnesses.fresh(t_us) and \
-                abs(witnesses.lateral_bias(bw) - ref) >= self.cfg.filter.accel_sigma_mps2
+                abs(witnesses.lateral_bias(bw, ahead=float(ekf.x[LA])) - ref) >= self.cfg.filter.accel_sigma_mps2
         if sensor == Sensor.GNSS_POS:
             # a receiver whose velocity is still judged attacked: its position waits. (The filter's own
             # uncertainty grows while both are out, which would let a spoofed position "agree".)

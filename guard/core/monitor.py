@@ -130,6 +130,7 @@ class Monitor:
         self.t_us: int | None = None
         self.gnss_lost = False
         self.health = Health(self._receiver, self.cfg.readmit_s)
+        self.health.lateral = self.ground and self.cfg.test_lateral
         self.witnesses = Witnesses(f, self.cfg.freeze_speed_mps)
         self.history = History(REWIND_S, f.gnss_delay_s, self.cfg.imu_fusion_hz or 1000.0)
         self.judge = Judge(self.cfg, self.detector, self.health, self.witnesses, self.history, self.longrun)
@@ -205,9 +206,9 @@ class Monitor:
         """A new filter, from the next fix. Its alarms are cleared but a GNSS one's, which stands.
 
         `keep_learnt`: the vehicle is the one it was (a reboot, a link back after an outage), so the
-        new filter starts from what the old one learnt of it, the compass's offset b_psi and the
-        wheels' slip k_s with their variances, not from the config's values: the heading is right
-        from the first fix and nothing is learnt twice. An autopilot calibrates its gyro and
+        new filter starts from what the old one learnt of it, the compass's offset b_psi, the
+        wheels' slip k_s and the sensors' place ahead of the axle d with their variances, not from the
+        config's values: the heading is right from the first fix and nothing is learnt twice. An autopilot calibrates its gyro and
         accelerometers at boot, so their biases start anew. A diverged filter keeps nothing: what it
         learnt may be what went wrong."""
         events: list[Event] = [Notice(t_us, "warning", f"{why}: filter re-initialised")]
@@ -232,6 +233,7 @@ class Monitor:
         if self.cfg.vehicle != "auto" or v.ground == self.ground:
             return []
         self.ground = v.ground
+        self.health.lateral = v.ground and self.cfg.test_lateral
         if self.ekf is not None and self.inertial is not False:
             self.ekf.tilting(not v.ground)
         what = ("a ground vehicle: its sideways velocity is held at zero" if v.ground
@@ -439,6 +441,8 @@ class Monitor:
         r, S, PHT = self.ekf.innovation(aid.z, aid.hx, aid.H, aid.R, angle_rows=angle)
         if theta is not None:
             self.witnesses.add_heading(HeadingWitness(s.t_us, theta, rate, ay, self.ekf.x[VX]))
+        if self.ground:
+            self.witnesses.add_side(s.t_us, rate, ay, float(self.ekf.x[VX]))
         # one stacked update, tested sensor by sensor; on wheels the constraint's row (the last) is tested
         # with the accelerometer's, whose sideways bias it shows first (the wheels hold the sideways
         # velocity the bias would build, and their constraint's innovation is where the bias goes)

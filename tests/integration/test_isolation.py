@@ -67,6 +67,24 @@ def test_heading_attacks_name_the_sensor_on_the_ground(tmp_path, attack, named):
         assert a.gnss_index - truth["attacks"][0]["start_gnss_index"] <= late, f"seed {seed}: late"
 
 
+@pytest.mark.parametrize("attack, named", [
+    (Attack("bias", "mag", "x", 0.05, START_S), "mag"),
+    (Attack("bias", "gyro", "z", 0.05, START_S), "gyro"),
+])
+def test_heading_attacks_name_the_sensor_with_the_sensors_ahead_of_the_axle(tmp_path, attack, named):
+    """Sensors 1.5 m ahead of the axle that does not slide: the GNSS course leaves the heading by the
+    angle of their swing in every turn. Taken as the heading the course shows (less the swing the
+    filter has learnt), it still witnesses it: before, a compass step was named the GNSS velocity."""
+    base = scenario.load("clean")
+    route = dataclasses.replace(base.route, sensors_ahead_m=1.5, max_yaw_jerk_radps3=2.0)
+    for seed in range(3):
+        sc = dataclasses.replace(base, name="iso", duration_s=45.0, attacks=(attack,), route=route)
+        tlog = tmp_path / f"ahead-{attack.sensor}-{seed}.tlog"
+        truth = run(sc, seed, tlog=str(tlog))
+        a = first_alarm(events_of(tlog), truth["attacks"][0])
+        assert (a.sensor, a.ambiguous_with) == (named, ()), f"seed {seed}: {a}"
+
+
 def test_a_named_gyro_stays_out_while_it_turns_away_and_returns_after(tmp_path):
     """Excluded, the gyro's own innovation soon agrees (the filter's yaw rate no longer follows it):
     it is re-admitted only once its heading turns with the magnetometer's again."""

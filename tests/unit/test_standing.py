@@ -113,3 +113,15 @@ def test_an_alarm_s_text_keeps_its_gnss_sample_whole():
     assert len(text) <= 50 and text.endswith("k=123456") and "-0.512" in text, text
     a = Alarm(1, 400, Sensor.GNSS_POS, "north", 30.0, 20.0, 10.2, "cusum", ())
     assert alarm_text(a) == "GUARD ALARM gnss_pos north +10.2m k=400"
+
+
+def test_the_lateral_channel_is_cleared_on_wheels_only():
+    """An accelerometer re-admitted says "clear" for each channel its test has: on wheels x, y and
+    "lateral" (the sideways constraint, tested with it), in the air x and y."""
+    from guard.core.health import Health
+    from guard.model.sensors import RECEIVER
+    for lateral, channels in ((True, ["x", "y", "lateral"]), (False, ["x", "y"])):
+        health = Health(RECEIVER, 3.0)
+        health.lateral = lateral
+        health.exclude(Sensor.ACCEL, 0)
+        assert [c.channel for c in health.readmit(Sensor.ACCEL, 1, 0)] == channels
