@@ -2,9 +2,9 @@
 
 Three sources see the heading turn: the gyro, the magnetometer and, on a ground vehicle at speed,
 the GNSS course. `Witnesses` keeps the last 2 WITNESS_S of the magnetometer's heading (with the yaw
-rate, the lateral specific force and the forward speed of each fusion) and of the GNSS course (its
-residual against the filter's track and heading), and from them names the sensor of a heading alarm
-(magnetometer, GNSS velocity):
+rate of each fusion), of the GNSS course (its residual against the filter's track and heading) and,
+on wheels, of the lateral specific force, yaw rate and forward speed of every IMU fusion, and from
+them names the sensor of a heading alarm (magnetometer, GNSS velocity):
 - the magnetometer and the course turned alike, the gyro differently from both: the gyro bent the heading;
 - the gyro and the magnetometer alike, the course apart: a GNSS velocity (a spoof) pulled it;
 - the magnetometer apart from both, or its heading less the gyro's jumping (a bias bends, it cannot
@@ -52,8 +52,6 @@ class HeadingWitness(NamedTuple):     # one magnetometer fusion
     t_us: int
     heading: float
     rate: float                       # yaw rate read by the gyro
-    ay: float                         # lateral specific force
-    vx: float                         # the filter's forward speed
 
 
 class CourseWitness(NamedTuple):      # one GNSS velocity at speed (ground vehicles)
@@ -69,7 +67,7 @@ class CourseWitness(NamedTuple):      # one GNSS velocity at speed (ground vehic
 def compass_less_gyro(mag, gyro_bias: float) -> tuple[np.ndarray, np.ndarray]:
     """(t, d) of magnetometer witnesses: their times (s from the first) and their heading less the
     gyro's, its yaw rate less gyro_bias integrated."""
-    t, heading, rate = np.array(mag)[:, :3].T
+    t, heading, rate = np.array(mag).T
     t = (t - t[0]) / 1e6
     return t, np.unwrap(heading) - np.cumsum((rate - gyro_bias) * np.diff(t, prepend=0.0))
 
@@ -222,7 +220,7 @@ class Witnesses:
         course = self.course if course is None else course
         if not mag or now_us - mag[-1].t_us > 1e6 or mag[-1].t_us - mag[0].t_us < 0.97 * WITNESS_S * 1e6:
             return None                             # no magnetometer, for over a second, or not for long yet
-        t, heading, rate = np.array(mag)[:, :3].T
+        t, heading, rate = np.array(mag).T
         t0, t = t[0], (t - t[0]) / 1e6
         gyro = np.cumsum((rate - gyro_bias) * np.diff(t, prepend=0.0))
 
@@ -267,5 +265,5 @@ class Witnesses:
 
     def gyro_bias(self) -> float:
         """The gyro's offset from the magnetometer: mean yaw rate minus the slope of the heading (last 2 s)."""
-        t, heading, rate = np.array(self.mag)[:, :3].T
+        t, heading, rate = np.array(self.mag).T
         return float(np.mean(rate) - np.polyfit((t - t[0]) / 1e6, np.unwrap(heading), 1)[0])

@@ -440,7 +440,7 @@ class Monitor:
                                                       tilt_rate, n)
         r, S, PHT = self.ekf.innovation(aid.z, aid.hx, aid.H, aid.R, angle_rows=angle)
         if theta is not None:
-            self.witnesses.add_heading(HeadingWitness(s.t_us, theta, rate, ay, self.ekf.x[VX]))
+            self.witnesses.add_heading(HeadingWitness(s.t_us, theta, rate))
         if self.ground:
             self.witnesses.add_side(s.t_us, rate, ay, float(self.ekf.x[VX]))
         # one stacked update, tested sensor by sensor; on wheels the constraint's row (the last) is tested

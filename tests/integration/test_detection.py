@@ -70,6 +70,25 @@ def test_no_false_alarm_in_30_clean_minutes(tmp_path):
     assert minutes >= 30
 
 
+class LastState:
+    """A replay's listener: one state of the filter's last estimate (what it ended having learnt)."""
+
+    def __init__(self, index: int):
+        self.index, self.value = index, None
+
+    def on_sample(self, sample):
+        pass
+
+    def on_events(self, events):
+        from guard.model.events import Estimate
+        for e in events:
+            if isinstance(e, Estimate):
+                self.value = float(e.x[self.index])
+
+    def close(self):
+        pass
+
+
 def test_a_car_s_wheels_slipping_at_road_speed_raise_no_alarm_and_do_without_the_slip_model(tmp_path):
     """A car's tyres slip outward in a turn: its course leaves its heading by about 0.01 rad per m/s^2
     of lateral acceleration. On the clean route driven 2.5 times faster (10 to 17.5 m/s, the yaw
@@ -80,21 +99,6 @@ def test_a_car_s_wheels_slipping_at_road_speed_raise_no_alarm_and_do_without_the
     a slip at a steady speed), the same drive alarms."""
     import dataclasses
     from guard.core.ekf import KS
-    from guard.model.events import Estimate
-
-    class Slip:
-        k = None
-
-        def on_sample(self, sample):
-            pass
-
-        def on_events(self, events):
-            for e in events:
-                if isinstance(e, Estimate):
-                    self.k = float(e.x[KS])
-
-        def close(self):
-            pass
     sc = scenario.load("clean")
     r = sc.route
     route = dataclasses.replace(
@@ -103,11 +107,11 @@ def test_a_car_s_wheels_slipping_at_road_speed_raise_no_alarm_and_do_without_the
         max_yaw_accel_radps2=0.5, sideslip_rad_per_mps2=0.01)
     tlog = tmp_path / "slip.tlog"
     run(dataclasses.replace(sc, route=route, duration_s=300.0), 5, tlog=str(tlog))
-    slip = Slip()
+    slip = LastState(KS)
     report = replay(str(tlog), listeners=[slip])
     assert report["alarms"] == [], report["alarms"][:3]
     assert max(report["peak_ratio"].values()) < 0.9
-    assert slip.k == pytest.approx(0.01, abs=0.003)
+    assert slip.value == pytest.approx(0.01, abs=0.003)
     held = {"p0_slip_rad_per_mps2": 0.0, "q_slip_rad_per_mps2": 0.0}
     for alone in ({"lateral_slip_rad_per_mps2": 0.0}, held):
         assert replay(str(tlog), parse({"filter": alone}))["alarms"] == [], alone
@@ -125,21 +129,6 @@ def test_sensors_ahead_of_the_axle_are_learnt_and_raise_no_alarm(tmp_path):
     at 0, the same drive alarms."""
     import dataclasses
     from guard.core.ekf import LA
-    from guard.model.events import Estimate
-
-    class Ahead:
-        d = None
-
-        def on_sample(self, sample):
-            pass
-
-        def on_events(self, events):
-            for e in events:
-                if isinstance(e, Estimate):
-                    self.d = float(e.x[LA])
-
-        def close(self):
-            pass
     sc = scenario.load("clean")
     for seed, d in ((1, 1.5), (2, -1.5), (3, 1.5)):
         tlog = tmp_path / f"ahead-{seed}.tlog"
@@ -147,10 +136,10 @@ def test_sensors_ahead_of_the_axle_are_learnt_and_raise_no_alarm(tmp_path):
         # sideways specific force at the sensors, a blow no car gives)
         route = dataclasses.replace(sc.route, sensors_ahead_m=d, max_yaw_jerk_radps3=2.0)
         run(dataclasses.replace(sc, duration_s=300.0, route=route), seed, tlog=str(tlog))
-        ahead = Ahead()
+        ahead = LastState(LA)
         report = replay(str(tlog), listeners=[ahead])
         assert report["alarms"] == [], (seed, report["alarms"][:3])
-        assert ahead.d == pytest.approx(d, abs=0.25), seed
+        assert ahead.value == pytest.approx(d, abs=0.25), seed
     held = replay(str(tlog), parse({"filter": {"p0_sensors_ahead_m": 0.0, "q_sensors_ahead_m": 0.0}}))
     assert held["alarms"], "the constraint without the lever arm did not object: the test shows nothing"
     # and what the lever arm learnt does not hide a sideways accelerometer bias: within 2 s, named
