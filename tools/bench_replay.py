@@ -1,9 +1,10 @@
 """Replay throughput: `guard replay` against a bare pymavlink read of the same tlog, in one run.
 
-    python tools/bench_replay.py [--minutes 10] [--repeat 3]
+    python tools/bench_replay.py [--minutes 10] [--repeat 3] [--vehicle ground]
 
 The tlog is simulated: RAW_IMU at 50 Hz and GPS_RAW_INT at 10 Hz only (scenario `clean`, no
-heartbeat). Each side is timed --repeat times, interleaved, and the best time of each is kept (the
+heartbeat: guard takes it for a vehicle that may move sideways unless `--vehicle ground`, which
+tests the wheels' constraint too). Each side is timed --repeat times, interleaved, and the best time of each is kept (the
 machines are shared and noisy); the ratio of the two is the figure to compare. Then one more replay
 is instrumented to show where the time goes: parsing (frames to samples), prediction, update
 (innovations and fusion) and the detector; the rest is the core's own bookkeeping and events.
@@ -24,6 +25,7 @@ os.environ.setdefault("MAVLINK20", "1")
 
 from pymavlink import mavutil                    # noqa: E402
 
+from guard.config import parse                   # noqa: E402
 from guard.core import monitor as core, ekf                      # noqa: E402
 from guard.sources.tlog import TlogReader, tlog_samples   # noqa: E402
 from guard.runtime.replay import replay                  # noqa: E402
@@ -69,7 +71,7 @@ class Clock:
         return inner
 
 
-def breakdown(path: str) -> dict[str, float]:
+def breakdown(path: str, cfg) -> dict[str, float]:
     """Seconds in parsing, prediction, update and detector for one instrumented replay."""
     reader = TlogReader(path)
     parse_s, n = timed(lambda: sum(1 for _ in tlog_samples(reader)))
@@ -81,7 +83,7 @@ def breakdown(path: str) -> dict[str, float]:
     ekf.NavEKF.fuse = clocks["update"].wrap(ekf.NavEKF.fuse)
     core.Monitor._test = clocks["detector"].wrap(core.Monitor._test)
     try:
-        total, _ = timed(replay, path)
+        total, _ = timed(replay, path, cfg)
     finally:
         ekf.NavEKF.predict, ekf.NavEKF.innovation, ekf.NavEKF.fuse, core.Monitor._test = originals
     parts = {"parsing": parse_s, **{k: c.total for k, c in clocks.items()}}
@@ -94,7 +96,10 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--minutes", type=float, default=10.0)
     p.add_argument("--repeat", type=int, default=5)
+    p.add_argument("--vehicle", choices=("auto", "ground", "air"), default="auto",
+                   help="monitor.vehicle for the replay (the tlog has no heartbeat: auto is air)")
     args = p.parse_args(argv)
+    cfg = parse({"monitor": {"vehicle": args.vehicle}}, "--vehicle")
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "bench.tlog")
         make_tlog(path, args.minutes)
@@ -102,7 +107,7 @@ def main(argv=None) -> int:
         for _ in range(args.repeat):
             t, n = timed(bare_pymavlink, path)
             best_bare = min(best_bare, t)
-            t, report = timed(replay, path)
+            t, report = timed(replay, path, cfg)
             best_guard = min(best_guard, t)
         assert sum(report["messages"].values()) == n, "both sides must read the same messages"
         print(f"tlog: {args.minutes:g} simulated minutes, {n} messages (RAW_IMU 50 Hz, GPS_RAW_INT 10 Hz), "
@@ -110,7 +115,7 @@ def main(argv=None) -> int:
         print(f"pymavlink read : {n / best_bare:10,.0f} messages/s  ({best_bare:.2f} s)")
         print(f"guard replay   : {n / best_guard:10,.0f} messages/s  ({best_guard:.2f} s)")
         print(f"ratio guard/pymavlink: {best_bare / best_guard:.2f}  (target >= 0.25)")
-        parts = breakdown(path)
+        parts = breakdown(path, cfg)
         total = parts.pop("total")
         print(f"where the time goes (one instrumented replay, {total:.2f} s):")
         for name, secs in parts.items():
