@@ -16,7 +16,8 @@ them names the sensor of a heading alarm (magnetometer, GNSS velocity):
   where the heading's witnesses say it bent the heading (the track then leaves the wheels' line
   too); the GNSS velocity where its course has left the filter's heading (a spoof drags the track
   sideways); else the accelerometer, which builds a sideways velocity the wheels do not have; with
-  the GNSS velocity as a suspect where no course was at hand (standing still, a silent receiver).
+  the GNSS velocity as a suspect where no course was at hand (standing still, a silent receiver),
+  and the gyro too without a compass (the course is then held against the gyro's heading alone).
 - a GNSS velocity alarm whose run began more than 2 WITNESS_S before it, its innovation across the
   track and the magnetometer still in use: the same turns over the whole run (up to RUN_S), the
   gyro's with the filter's bias of the run's onset; the magnetometer apart from the gyro and the
