@@ -4,8 +4,9 @@
 
 The tlog is simulated: RAW_IMU at 50 Hz and GPS_RAW_INT at 10 Hz only (scenario `clean`, no
 heartbeat: guard takes it for a vehicle that may move sideways unless `--vehicle ground`, which
-tests the wheels' constraint too). Each side is timed --repeat times, interleaved, and the best time of each is kept (the
-machines are shared and noisy); the ratio of the two is the figure to compare. Then one more replay
+tests the wheels' constraint too). Each side is timed --repeat times, interleaved, and the best
+time of each is kept (the machines are shared and noisy); the ratio of the two is the figure to
+compare. Then one more replay
 is instrumented to show where the time goes: parsing (frames to samples), prediction, update
 (innovations and fusion) and the detector; the rest is the core's own bookkeeping and events.
 """

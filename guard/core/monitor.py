@@ -208,9 +208,9 @@ class Monitor:
         `keep_learnt`: the vehicle is the one it was (a reboot, a link back after an outage), so the
         new filter starts from what the old one learnt of it, the compass's offset b_psi, the
         wheels' slip k_s and the sensors' place ahead of the axle d with their variances, not from the
-        config's values: the heading is right from the first fix and nothing is learnt twice. An autopilot calibrates its gyro and
-        accelerometers at boot, so their biases start anew. A diverged filter keeps nothing: what it
-        learnt may be what went wrong."""
+        config's values: the heading is right from the first fix and nothing is learnt twice. An
+        autopilot calibrates its gyro and accelerometers at boot, so their biases start anew. A
+        diverged filter keeps nothing: what it learnt may be what went wrong."""
         events: list[Event] = [Notice(t_us, "warning", f"{why}: filter re-initialised")]
         self._learnt = Learnt.of(self.ekf) if keep_learnt and self.ekf is not None else None
         if self._learnt is not None:
