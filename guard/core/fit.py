@@ -3,7 +3,9 @@ covariance (z = r_i / sqrt(S_ii)), have unit variance. Over minutes, per sensor,
 the fused innovations (each clipped at CLIP^2, so that one glitch does not speak for minutes) says by
 how much the noise model is off. A model that does not fit is said as a WARNING naming the sensor
 and the factor ("gnss_vel innovations 2.3x the model: run guard tune"), not as an attack alarm; it is
-said again only when the factor grew by REPEAT_GROWTH, or after REPEAT_S.
+said again only when the factor grew by REPEAT_GROWTH, or after REPEAT_S. On wheels the
+accelerometer's test holds the sideways constraint's channel too, whose noise is its own
+(`lateral_sigma_mps`): it is judged apart, as "accel lateral".
 """
 
 from __future__ import annotations
@@ -21,15 +23,23 @@ WARN_FACTOR = 1.5       # innovations this many times the model's standard devia
 CLIP = 5.0
 REPEAT_S = 600.0
 REPEAT_GROWTH = 1.25
+LATERAL = "accel lateral"   # the sideways constraint's channel of a ground vehicle's accelerometer test
 
 
 class ModelFit:
     def __init__(self):
-        self.acc: dict[Sensor, list] = {}       # sensor -> [decayed sum of z^2, decayed count, first t, last t]
-        self.said: dict[Sensor, tuple[int, float]] = {}    # when a warning went out, and its factor
+        self.acc: dict[str, list] = {}          # sensor -> [decayed sum of z^2, decayed count, first t, last t]
+        self.said: dict[str, tuple[int, float]] = {}       # when a warning went out, and its factor
 
     def add(self, sensor: Sensor, t_us: int, r: np.ndarray, S: np.ndarray) -> None:
         """One fused innovation (python floats: this runs at every fusion)."""
+        if sensor == Sensor.ACCEL and len(r) == 3:
+            self._add(sensor, t_us, r[:2], S[:2, :2])
+            self._add(LATERAL, t_us, r[2:], S[2:, 2:])
+        else:
+            self._add(sensor, t_us, r, S)
+
+    def _add(self, sensor: str, t_us: int, r: np.ndarray, S: np.ndarray) -> None:
         z2 = 0.0
         for ri, si in zip(r.tolist(), S.diagonal().tolist()):
             z2 += min(ri * ri / si, CLIP * CLIP)
@@ -45,7 +55,7 @@ class ModelFit:
         a[1] = a[1] * decay + len(r)
         a[3] = t_us
 
-    def factor(self, sensor: Sensor) -> float | None:
+    def factor(self, sensor: str) -> float | None:
         """sqrt(mean z^2): 1 when the model fits; None before MATURE_S of innovations."""
         a = self.acc.get(sensor)
         if a is None or a[3] - a[2] < MATURE_S * 1e6:

@@ -556,3 +556,19 @@ def test_the_wait_for_the_vehicle_type_starts_again_with_a_new_filter():
     again = next(n.t_us for n in of(events, Notice) if "re-initialised" in n.text)
     said = [n for n in of(events, Notice) if "monitor.vehicle" in n.text]
     assert len(said) == 1 and said[0].t_us - again >= 9_500_000, (said, again)
+
+
+def test_the_fit_check_judges_the_sideways_constraint_apart_from_the_accelerometer():
+    """On wheels the accelerometer's test holds the constraint's channel: a constraint whose innovations
+    run 3 times its model (sensors swinging ahead of an axle the filter does not know of) is said as
+    such, and the accelerometer, which fits, is not blamed."""
+    from guard.core.fit import ModelFit
+    from guard.model.sensors import Sensor
+    rng = np.random.default_rng(3)
+    fit = ModelFit()
+    for i in range(200 * 50):                       # 200 s at 50 Hz
+        r = rng.normal(0.0, 1.0, 3) * [1.0, 1.0, 3.0]
+        fit.add(Sensor.ACCEL, i * 20_000, r, np.eye(3))
+    said = [n.text for n in fit.check(200 * 1_000_000)]
+    assert len(said) == 1 and said[0].startswith("accel lateral innovations"), said
+    assert 2.5 < fit.factor("accel lateral") <= 3.0 and fit.factor(Sensor.ACCEL) < 1.1   # (each z^2 clipped at 25)
