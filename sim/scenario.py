@@ -106,6 +106,8 @@ class Noise:
     imu_yaw_mount_deg: float = 0.0        # accelerometer and gyro (not the compass) mounted yawed by this
     gnss_h_acc_reported: bool = True      # false: GPS_RAW_INT's h_acc and v_acc are 0 ("unknown")
     gnss_vel_acc_reported: bool = True    # false: its vel_acc is 0 ("unknown"); true: gnss_vel_white_mps
+    gnss_course_hold_mps: float = 0.0     # below this measured speed the receiver holds its last course over
+                                          # ground (real ones do, where the course means nothing: 0.3 to 2 m/s)
 
 
 MAX_WANDER_DEG = 30.0       # the compass's wander (1 sigma): as far as its fixed offset may go

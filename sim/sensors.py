@@ -21,7 +21,7 @@ Attacks add to the measurement, after the noise: y_alpha(k) = C x(k) + alpha(k) 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from pygeomag import GeoMag
@@ -69,6 +69,7 @@ class Sensors:
         self.field_ned = earth_field_ned_gauss(st.lat_deg, st.lon_deg, st.alt_m, st.year)
         self.frozen: GnssReading | None = None
         self.last_gnss_t: float | None = None
+        self.course: float | None = None        # the receiver's last course over ground (gnss_course_hold_mps)
         # the compass's wandering heading error (rad), from a stream of its own: runs without it draw as before
         self.rng_wander = np.random.default_rng(np.random.SeedSequence(seed).spawn(5)[4]) \
             if n.mag_wander_deg > 0 else None
@@ -106,11 +107,24 @@ class Sensors:
                 pos, vel = 0.5 * a.magnitude * tau * tau, a.magnitude * tau
                 reading = GnssReading(reading.east_m + de * pos, reading.north_m + dn * pos,
                                       reading.vel_e_mps + de * vel, reading.vel_n_mps + dn * vel)
+        reading = self._course_held(reading)
         if any(a.kind == "freeze" and a.active(t_s) for a in self.attacks):
             self.frozen = self.frozen or reading
             return self.frozen
         self.frozen = None
         return reading
+
+    def _course_held(self, reading: GnssReading) -> GnssReading:
+        """Below gnss_course_hold_mps the receiver reports its speed along the last course it had above it
+        (its first fix's course is its own)."""
+        hold = self.noise.gnss_course_hold_mps
+        if hold <= 0.0:
+            return reading
+        speed = math.hypot(reading.vel_e_mps, reading.vel_n_mps)
+        if speed >= hold or self.course is None:
+            self.course = math.atan2(reading.vel_e_mps, reading.vel_n_mps)
+            return reading
+        return replace(reading, vel_e_mps=speed * math.sin(self.course), vel_n_mps=speed * math.cos(self.course))
 
     def imu(self, t_s: float, s: State) -> ImuReading:
         n = self.noise

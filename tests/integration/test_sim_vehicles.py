@@ -38,7 +38,7 @@ NOISELESS = {"accel_white_mps2": 0.0, "accel_bias_mps2": 0.0, "gyro_white_radps"
              "mag_white_gauss": 0.0}
 NEW_KEYS = {"mag_offset_deg": 0.0, "mag_wander_deg": 0.0, "mag_wander_tau_s": 3.0, "mag_iron_x": 0.0,
             "mag_iron_y": 0.0, "accel_scale": 0.0, "gyro_scale": 0.0, "imu_yaw_mount_deg": 0.0,
-            "gnss_h_acc_reported": True, "gnss_vel_acc_reported": True}
+            "gnss_h_acc_reported": True, "gnss_vel_acc_reported": True, "gnss_course_hold_mps": 0.0}
 
 
 def scenario_with(**noise) -> scn.Scenario:
@@ -102,6 +102,7 @@ def wrap_deg(x):
     ("imu_yaw_mount_deg", 10.0, {("RAW_IMU", "xacc"), ("RAW_IMU", "yacc")}),
     ("gnss_vel_acc_reported", False, {("GPS_RAW_INT", "vel_acc")}),
     ("gnss_h_acc_reported", False, {("GPS_RAW_INT", "h_acc"), ("GPS_RAW_INT", "v_acc")}),
+    ("gnss_course_hold_mps", 4.5, {("GPS_RAW_INT", "cog")}),  # the speed kept, its course held
 ])
 def test_a_knob_changes_only_its_fields(runs, knob, value, expected):
     base, _ = runs()
@@ -431,3 +432,17 @@ def test_a_car_s_steering_moves_its_yaw_acceleration_smoothly():
     assert abs(stepwise.s.w_dot) > 10 * (k * v * v * 4.0 * dt + v * a * dt), "and so does the sideways force"
     with pytest.raises(ScenarioError, match="max_yaw_jerk_radps3"):
         scn.parse({**BASE, "route": {**BASE["route"], "max_yaw_jerk_radps3": -1.0}}, "car.toml")
+
+
+def test_a_receiver_holds_its_course_below_its_speed_and_measures_it_above(runs):
+    """Below gnss_course_hold_mps every fix repeats the last course; above it the course moves with the
+    vehicle (and its noise), as without the knob."""
+    base, _ = runs()
+    held, _ = runs(gnss_course_hold_mps=4.5)
+    gps = [(m.vel / 100.0, m.cog) for m in held if m.get_type() == "GPS_RAW_INT"]
+    free = [m.cog for m in base if m.get_type() == "GPS_RAW_INT"]
+    slow = [i for i in range(1, len(gps)) if gps[i][0] < 4.49]
+    fast = [i for i in range(1, len(gps)) if gps[i][0] > 4.51]
+    assert len(slow) > 50 and len(fast) > 50
+    assert all(gps[i][1] == gps[i - 1][1] for i in slow)
+    assert all(gps[i][1] == free[i] for i in fast)
