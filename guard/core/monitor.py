@@ -33,8 +33,8 @@ import numpy as np
 
 from guard.core.aiding import Aid
 from guard.core.aiding.compass import NO_COMPASS_S, CompassWatch
-from guard.core.aiding.gnss import (START_H_ACC_M, START_HDOP, FreezeWatch, GnssAiding, across_track,
-                                    gnss_velocity_model)
+from guard.core.aiding.gnss import (HELD_COURSE_MAX_MPS, START_H_ACC_M, START_HDOP, FreezeWatch, GnssAiding,
+                                    across_track, gnss_velocity_model)
 from guard.core.aiding.impact import BUDGET_S, HOLD_S, IMPACT_G, MEAN_S, WINDOW_S, Impact
 from guard.core.aiding.tilt import Tilt
 from guard.core.aiding.imu import Averager, ImuAiding, RateWatch, fuse_rows, heading, level, row_sensors
@@ -120,6 +120,7 @@ class Monitor:
         self._fix: GnssFix | None = None            # the latest fix, and where it is in the local frame
         self._fix_en: tuple[float, float] | None = None
         self.drift = Drift()                        # the IMU's open-loop drift, measured in flight (the vehicle's)
+        self._held_said = False                     # the receiver holds its course at low speed: said once
         self._reset()
 
     def _reset(self) -> None:
@@ -314,7 +315,16 @@ class Monitor:
         if delayed:                 # the position's correction, carried to the state the velocity is tested on
             xd = xd + state_minus(ekf.x, before)
         if self.cfg.filter.use_gnss_velocity and fix.vel_n_mps is not None:
-            aid = self.gnss_aid.velocity(fix, xd, accel, bool(self.ground))
+            held = self.gnss_aid.held_course(fix)
+            if held:
+                self.skipped["gnss_course_held"] += 1
+                if not self._held_said:
+                    self._held_said = True
+                    events.append(Notice(fix.t_us, "info", "the receiver holds its course over ground at low "
+                                         "speed (a course repeated to the last digit under "
+                                         f"{HELD_COURSE_MAX_MPS:g} m/s): such a fix's velocity is taken with its "
+                                         "direction unknown (counted as gnss_course_held)"))
+            aid = self.gnss_aid.velocity(fix, xd, accel, bool(self.ground), held)
             self.witnesses.add_course(fix, xd, ekf.P[TH, TH], self.ground, across_track(aid.R, fix))
             events += self._measure(Sensor.GNSS_VEL, fix.t_us, aid)
         self._probe(fix)

@@ -10,6 +10,7 @@ from collections import Counter
 from dataclasses import asdict
 from pathlib import Path
 
+from guard.core.aiding.gnss import HELD_COURSE_MAX_MPS
 from guard.model.events import Alarm, Cleared, Estimate, Notice
 from guard.model.samples import Attitude, GnssFix, ImuSample
 from guard.sinks.base import Sink
@@ -21,6 +22,9 @@ SKIPPED = {
     "gnss_no_fix": "GNSS messages without a 3D fix (monitoring waits for one, or coasts on the IMU)",
     "gnss_resent": "GNSS messages resent with a time already seen",
     "gnss_coarse_before_start": "GNSS fixes too coarse to start on (the receiver's accuracy over 5 m, or HDOP over 5)",
+    "gnss_course_held": "GNSS fixes' velocity directions, held by the receiver (a course repeated to the last "
+                        f"digit under {HELD_COURSE_MAX_MPS:g} m/s): taken as unknown, the velocity's variance "
+                        "widened by twice its speed",
     "gnss_out_of_order": "GNSS messages stamped before the last one",
     "imu_resent": "IMU samples resent with a time already seen",
     "imu_out_of_order": "IMU samples stamped before the last one",

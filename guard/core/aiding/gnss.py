@@ -14,6 +14,11 @@ unit of the fix's HDOP where it gives one (an older receiver reports its geometr
 at HDOP 1, 0.5 m; the Erle PXF's receivers flew at HDOP 1.3 to 2, their position wandering against
 their own velocity by a metre), else gnss_pos_unreported_m (real receivers' levels, as EKF3's
 defaults, not the simulator's).
+A receiver holds its course over ground where the vehicle moves too slowly for a course to mean anything,
+and reports its speed along the last course it had (HELD_COURSE_MAX_MPS): a fix whose course repeats the
+last one's to the last digit, that slowly but faster than its noise (HELD_NOISE), has its velocity's
+direction taken as unknown, R widened by (2 |v|)^2 on both axes (a held course is off by up to the angle
+turned since, as far as twice the speed).
 The velocity's R can also hold the receiver's latency, as far as it is unknown (latency_spread, off
 by default): on the 47 real flights of the README the GNSS velocity innovations grow with the
 acceleration, more along it than across it, as a fix 0.05 to 0.35 s late would make them on the
@@ -52,6 +57,19 @@ ACC_CAP = 10.0          # a reported accuracy counts up to this many times its f
 # GPS before use), its HDOP where it reports no accuracy
 START_H_ACC_M = 5.0
 START_HDOP = 5.0
+# A receiver holds its course over ground while the vehicle moves too slowly for the course to mean anything
+# (receivers' own low-speed rule): the real logs of the README held it below 0.3 to 2 m/s (copters' and
+# planes' receivers, in tlogs and DataFlash) and a car's often up to 3, where the held course parted from
+# the track by 0.6 to 1.9 m/s (median), against 0.2 to 0.4 for a fresh one. A course repeated to the last
+# digit below this speed is taken as held. Above it a repeat is tested as it reads: at speed a receiver's
+# noise moves its course every fix, and widening there would let a spoofer who repeats his course blind
+# the velocity's test.
+HELD_COURSE_MAX_MPS = 3.0
+# Below this many times its velocity's noise a reported speed is mostly the receiver's noise, and so is
+# its course, held or fresh: a vector of that length, whichever way it points, is what R already allows
+# for. Above it a held course can stand across a turn. (Widened down to standing still, the real logs'
+# hovering copters caught fewer 0.3 m/s position ramps, which their velocity gave away: README.)
+HELD_NOISE = 2.0
 
 
 class GnssAiding:
@@ -59,6 +77,7 @@ class GnssAiding:
 
     def __init__(self, f: FilterConfig):
         self.f = f
+        self._last_course: float | None = None     # the last fix's course over ground (rad from north)
 
     def beyond_cap(self, fix: GnssFix) -> str | None:
         """What to say of a fix whose receiver calls itself worse than guard takes a receiver's word
@@ -117,13 +136,31 @@ class GnssAiding:
         # R: the measurement noise covariance
         return Aid(np.array([e, n]), x[:2].copy(), H_POS, np.eye(2) * self.sigma_pos(fix) ** 2)
 
-    def velocity(self, fix: GnssFix, x: np.ndarray, accel_en: np.ndarray | None, ground: bool) -> Aid:
+    def held_course(self, fix: GnssFix) -> bool:
+        """Whether this fix's course over ground repeats the last fix's to the last digit while it moves
+        slower than HELD_COURSE_MAX_MPS but faster than HELD_NOISE times its velocity's noise: a course
+        the receiver held, not measured, and that may matter. Asked once per fix with a velocity, in
+        order."""
+        speed = math.hypot(fix.vel_e_mps, fix.vel_n_mps)
+        course = math.atan2(fix.vel_e_mps, fix.vel_n_mps) if speed > 0.0 else None
+        last, self._last_course = self._last_course, course
+        # the course comes as an angle (GPS_RAW_INT's cdeg, DataFlash's degrees) and the speed apart: the
+        # velocity built from them gives the same angle back to a few 1e-16 rad
+        return (course is not None and last is not None and abs(course - last) < 1e-9
+                and HELD_NOISE * self.sigma_vel(fix) < speed < HELD_COURSE_MAX_MPS)
+
+    def velocity(self, fix: GnssFix, x: np.ndarray, accel_en: np.ndarray | None, ground: bool,
+                 held: bool = False) -> Aid:
         """accel_en: the vehicle's mean horizontal acceleration (east, north) since the last fix
-        (guard.core.monitor), what a late fix's velocity lags by (latency_spread)."""
+        (guard.core.monitor), what a late fix's velocity lags by (latency_spread). held: its course was
+        held by the receiver (held_course), its direction unknown."""
         hx, H = gnss_velocity_model(x)
         lag = self.latency_spread(accel_en, ground)
-        return Aid(np.array([fix.vel_e_mps, fix.vel_n_mps]), hx, H,
-                   np.eye(2) * self.sigma_vel(fix) ** 2 + np.outer(lag, lag))
+        R = np.eye(2) * self.sigma_vel(fix) ** 2 + np.outer(lag, lag)
+        if held:
+            # R += (2 |v|)^2 I: a held course is off by up to the angle turned since, as far as twice the speed
+            R += np.eye(2) * (2.0 * math.hypot(fix.vel_e_mps, fix.vel_n_mps)) ** 2
+        return Aid(np.array([fix.vel_e_mps, fix.vel_n_mps]), hx, H, R)
 
     def latency_sigma(self, ground: bool) -> float:
         """sigma_L, s: how far the receiver's latency is unknown on this vehicle (0: off)."""

@@ -1,0 +1,105 @@
+"""A receiver that holds its course over ground at low speed (guard.core.aiding.gnss, HELD_COURSE_MAX_MPS).
+
+Real receivers report their speed along the last course they had while the vehicle moves too slowly for
+a course to mean anything (the simulator's `gnss_course_hold_mps`). The GNSS velocity built from the two
+then points the wrong way through a slow turn. Each run is simulated to a real tlog and replayed through
+the same path as `guard replay`.
+"""
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+import guard.core.aiding.gnss as gnss
+from guard.config import parse
+from guard.core.aiding.gnss import HELD_COURSE_MAX_MPS, GnssAiding
+from guard.core.ekf import FilterConfig
+from guard.model.samples import GnssFix
+from guard.runtime.replay import replay
+from guard_sim import scenario
+from guard_sim.scenario import Attack
+from guard_sim.run import run
+
+SLOW = (1.5, 2.0, 1.0, 2.5, 1.5, 1.0)       # the clean route's legs at walking pace (m/s)
+HOLD_MPS = 1.5                               # the receiver holds its course below this
+
+
+def slow_drive(tmp_path, seed: int, attacks=(), duration_s=120.0):
+    sc = scenario.load("clean")
+    route = dataclasses.replace(sc.route, waypoints_m=tuple((p[0], p[1], v) for p, v in zip(sc.route.waypoints_m, SLOW)))
+    sc = dataclasses.replace(sc, duration_s=duration_s, route=route, attacks=tuple(attacks),
+                             noise=dataclasses.replace(sc.noise, gnss_course_hold_mps=HOLD_MPS))
+    tlog = tmp_path / f"slow-{seed}.tlog"
+    truth = run(sc, seed, tlog=str(tlog))
+    return tlog, truth
+
+
+def fix(ve: float, vn: float) -> GnssFix:
+    return GnssFix(0, True, 47.0, 8.0, 400.0, vn, ve, 0.5, 0.1)
+
+
+def test_a_course_repeated_to_the_last_digit_at_low_speed_is_held():
+    aid = GnssAiding(FilterConfig())
+    c = math.radians(123.45)
+    along = lambda speed: fix(speed * math.sin(c), speed * math.cos(c))    # noqa: E731
+    assert not aid.held_course(along(1.0))              # the first: nothing to repeat
+    assert aid.held_course(along(1.3))                  # the same course, another speed
+    assert aid.held_course(along(1.3))                  # and again
+    assert not aid.held_course(fix(0.9, 0.9))           # a new course
+    assert not aid.held_course(fix(0.0, 0.0))           # standing: no course at all
+    assert not aid.held_course(fix(0.0, 0.0))
+    aid.held_course(along(0.5))
+    assert not aid.held_course(along(0.15))             # within twice its noise (0.1 m/s): the noise's course
+    assert aid.held_course(along(0.25))
+    fast = HELD_COURSE_MAX_MPS + 0.5
+    aid.held_course(along(fast))
+    assert not aid.held_course(along(fast + 0.2))       # at speed a repeat is tested as it reads
+
+
+def test_a_held_course_widens_the_velocity_by_twice_its_speed_and_nothing_else():
+    aid = GnssAiding(FilterConfig())
+    x = np.zeros(14)
+    f = fix(0.6, 0.8)
+    plain, held = aid.velocity(f, x, None, True), aid.velocity(f, x, None, True, held=True)
+    assert np.allclose(held.R - plain.R, np.eye(2) * 4.0)      # (2 |v|)^2, |v| = 1
+    assert np.array_equal(held.z, plain.z) and np.array_equal(held.H, plain.H)
+
+
+@pytest.mark.parametrize("vehicle", ["ground", "air"])
+def test_slow_driving_with_a_held_course_raises_no_alarm_and_says_so_once(tmp_path, vehicle):
+    """Two minutes at 1 to 2.5 m/s through the route's turns, the receiver holding its course below
+    1.5 m/s, over three seeds: no alarm, the held fixes counted and said once."""
+    config = parse({"monitor": {"vehicle": vehicle}})
+    for seed in (1, 2, 3):
+        tlog, _ = slow_drive(tmp_path, seed)
+        report = replay(str(tlog), config)
+        assert report["alarms"] == [], f"seed {seed}: {report['alarms'][:3]}"
+        assert max(report["peak_ratio"].values()) < 0.9
+        assert report["skipped"]["gnss_course_held"] > 300
+        said = [n for n in report["notices"] if "holds its course" in n["text"]]
+        assert len(said) == 1
+
+
+@pytest.mark.parametrize("vehicle", ["ground", "air"])
+def test_without_the_rule_the_same_drive_alarms(tmp_path, monkeypatch, vehicle):
+    """The control: a held course taken as a measured one parts from the vehicle's track in the turns."""
+    monkeypatch.setattr(gnss, "HELD_COURSE_MAX_MPS", 0.0)
+    tlog, _ = slow_drive(tmp_path, 1)
+    report = replay(str(tlog), parse({"monitor": {"vehicle": vehicle}}))
+    assert "gnss_course_held" not in report["skipped"]
+    assert any(a["sensor"] == "gnss_vel" for a in report["alarms"]), report["alarms"][:3]
+
+
+@pytest.mark.parametrize("seed", [4, 5, 6])
+def test_a_step_on_a_slow_drive_with_a_held_course_is_still_caught(tmp_path, seed):
+    """The position's test is the receiver's own: a 5 m step while the course is held (the third leg,
+    at 1 m/s) is caught within 1 s, on GNSS position."""
+    tlog, truth = slow_drive(tmp_path, seed, attacks=(Attack("step", "gnss_pos", "north", 5.0, 90.0),))
+    report = replay(str(tlog))
+    k0 = truth["attacks"][0]["start_gnss_index"]
+    after = [a for a in report["alarms"] if a["gnss_index"] >= k0]
+    assert after and all(a["gnss_index"] >= k0 for a in report["alarms"]), report["alarms"][:3]
+    assert after[0]["sensor"] == "gnss_pos"
+    assert after[0]["gnss_index"] - k0 <= 10                    # 10 Hz: within 1 s
