@@ -6,7 +6,8 @@ A receiver sends its speed and, apart, its course over ground (GPS_RAW_INT's vel
 Spd and GCrs). Below a speed of its own, where a course means nothing, it keeps sending its last one,
 and the velocity built from the two then points the wrong way (guard.core.aiding.gnss,
 HELD_COURSE_MAX_MPS). Per log, as guard reads it (`guard replay`'s sources): the share of fixes, by
-speed, whose course repeats the previous fix's to the last digit, and, at 0.5 to 3 m/s, the median
+speed, whose course repeats the previous fix's to the last digit (its position not: that is a frozen
+fix), and, at 0.5 to 3 m/s, the median
 distance between the fix's velocity and the track its positions draw (their central difference over
 SPAN_S either side), for held courses and for fresh ones. A receiver that sends its velocity as
 north and east components (ULog, DroneCAN) repeats no course, and that is what the tool shows.
@@ -62,7 +63,8 @@ def survey(rows: list[tuple]) -> dict:
     speed = np.hypot(ve, vn)
     course = np.arctan2(ve, vn)
     held = np.zeros(len(a), dtype=bool)
-    held[1:] = (speed[1:] > 0.0) & (speed[:-1] > 0.0) & (np.abs(course[1:] - course[:-1]) < 1e-9)
+    moved = (a[1:, 1] != a[:-1, 1]) | (a[1:, 2] != a[:-1, 2])          # a position repeated too: a frozen fix
+    held[1:] = (speed[1:] > 0.0) & (speed[:-1] > 0.0) & (np.abs(course[1:] - course[:-1]) < 1e-9) & moved
     frame = LocalFrame(a[0, 1], a[0, 2], 0.0)
     en = np.array([frame.to_en(la, lo) for la, lo in a[:, 1:3]])
     bins = []

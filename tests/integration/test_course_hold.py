@@ -36,8 +36,13 @@ def slow_drive(tmp_path, seed: int, attacks=(), duration_s=120.0):
     return tlog, truth
 
 
-def fix(ve: float, vn: float) -> GnssFix:
-    return GnssFix(0, True, 47.0, 8.0, 400.0, vn, ve, 0.5, 0.1)
+def fix(ve: float, vn: float, moved: bool = True) -> GnssFix:
+    """A fix with this velocity, a metre north of the last one made (or where it was: moved=False)."""
+    fix.lat += 1e-5 if moved else 0.0
+    return GnssFix(0, True, fix.lat, 8.0, 400.0, vn, ve, 0.5, 0.1)
+
+
+fix.lat = 47.0
 
 
 def test_a_course_repeated_to_the_last_digit_at_low_speed_is_held():
@@ -53,6 +58,9 @@ def test_a_course_repeated_to_the_last_digit_at_low_speed_is_held():
     aid.held_course(along(0.5))
     assert not aid.held_course(along(0.15))             # within twice its noise (0.1 m/s): the noise's course
     assert aid.held_course(along(0.25))
+    frozen = along(0.25)
+    assert aid.held_course(frozen)
+    assert not aid.held_course(fix(frozen.vel_e_mps, frozen.vel_n_mps, moved=False))   # a frozen fix: FreezeWatch's
     fast = HELD_COURSE_MAX_MPS + 0.5
     aid.held_course(along(fast))
     assert not aid.held_course(along(fast + 0.2))       # at speed a repeat is tested as it reads

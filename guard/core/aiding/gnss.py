@@ -77,7 +77,7 @@ class GnssAiding:
 
     def __init__(self, f: FilterConfig):
         self.f = f
-        self._last_course: float | None = None     # the last fix's course over ground (rad from north)
+        self._last_course: tuple | None = None     # the last fix's (course over ground rad from north, lat, lon)
 
     def beyond_cap(self, fix: GnssFix) -> str | None:
         """What to say of a fix whose receiver calls itself worse than guard takes a receiver's word
@@ -140,13 +140,14 @@ class GnssAiding:
         """Whether this fix's course over ground repeats the last fix's to the last digit while it moves
         slower than HELD_COURSE_MAX_MPS but faster than HELD_NOISE times its velocity's noise: a course
         the receiver held, not measured, and that may matter. Asked once per fix with a velocity, in
-        order."""
+        order. A fix whose position repeats too is a frozen one, FreezeWatch's, not a held course."""
         speed = math.hypot(fix.vel_e_mps, fix.vel_n_mps)
         course = math.atan2(fix.vel_e_mps, fix.vel_n_mps) if speed > 0.0 else None
-        last, self._last_course = self._last_course, course
+        last, self._last_course = self._last_course, (course, fix.lat_deg, fix.lon_deg)
         # the course comes as an angle (GPS_RAW_INT's cdeg, DataFlash's degrees) and the speed apart: the
         # velocity built from them gives the same angle back to a few 1e-16 rad
-        return (course is not None and last is not None and abs(course - last) < 1e-9
+        return (course is not None and last is not None and last[0] is not None and abs(course - last[0]) < 1e-9
+                and last[1:] != (fix.lat_deg, fix.lon_deg)
                 and HELD_NOISE * self.sigma_vel(fix) < speed < HELD_COURSE_MAX_MPS)
 
     def velocity(self, fix: GnssFix, x: np.ndarray, accel_en: np.ndarray | None, ground: bool,
