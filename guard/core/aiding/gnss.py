@@ -60,7 +60,7 @@ START_HDOP = 5.0
 # A receiver holds its course over ground while the vehicle moves too slowly for the course to mean anything
 # (receivers' own low-speed rule): the real logs of the README held it below 0.3 to 2 m/s (copters' and
 # planes' receivers, in tlogs and DataFlash) and a car's often up to 3, where the held course parted from
-# the track by 0.6 to 1.9 m/s (median), against 0.2 to 0.4 for a fresh one. A course repeated to the last
+# the track by 0.55 to 1.9 m/s (median), against 0.2 to 0.4 for a fresh one. A course repeated to the last
 # digit below this speed is taken as held. Above it a repeat is tested as it reads: at speed a receiver's
 # noise moves its course every fix, and widening there would let a spoofer who repeats his course blind
 # the velocity's test.
