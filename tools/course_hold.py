@@ -10,7 +10,9 @@ speed, whose course repeats the previous fix's to the last digit (its position n
 fix), and, at 0.5 to 3 m/s, the median
 distance between the fix's velocity and the track its positions draw (their central difference over
 SPAN_S either side), for held courses and for fresh ones. A receiver that sends its velocity as
-north and east components (ULog, DroneCAN) repeats no course, and that is what the tool shows.
+north and east components (ULog, DroneCAN) repeats its course only where it came from a receiver's
+speed and course (PX4 logs an NMEA receiver's so). A log whose clock goes back (a reboot) is read on,
+its fixes after the reboot as a stretch of their own.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from guard.core.aiding.gnss import SAME_COURSE_RAD   # noqa: E402
 from guard.core.geo import LocalFrame                # noqa: E402
 from guard.errors import GuardError                  # noqa: E402
 from guard.model.samples import GnssFix              # noqa: E402
@@ -42,12 +45,16 @@ class Fixes:
 
     def __init__(self):
         self.rows: list[tuple[float, float, float, float, float]] = []    # t s, lat, lon, v_e, v_n
+        self.shift = 0.0        # s added to the time stamps after a reboot, so that they go on rising
 
     def on_sample(self, sample) -> None:
         if isinstance(sample, GnssFix) and sample.fix_ok and sample.vel_n_mps is not None:
-            if not self.rows or sample.t_us * 1e-6 > self.rows[-1][0]:
-                self.rows.append((sample.t_us * 1e-6, sample.lat_deg, sample.lon_deg, sample.vel_e_mps,
-                                  sample.vel_n_mps))
+            t = sample.t_us * 1e-6 + self.shift
+            if self.rows and t < self.rows[-1][0]:      # a reboot: a gap no track is drawn across
+                self.shift += self.rows[-1][0] - t + 2 * MAX_SPAN_S
+                t = sample.t_us * 1e-6 + self.shift
+            if not self.rows or t > self.rows[-1][0]:
+                self.rows.append((t, sample.lat_deg, sample.lon_deg, sample.vel_e_mps, sample.vel_n_mps))
 
     def on_events(self, events) -> None:
         pass
@@ -64,7 +71,8 @@ def survey(rows: list[tuple]) -> dict:
     course = np.arctan2(ve, vn)
     held = np.zeros(len(a), dtype=bool)
     moved = (a[1:, 1] != a[:-1, 1]) | (a[1:, 2] != a[:-1, 2])          # a position repeated too: a frozen fix
-    held[1:] = (speed[1:] > 0.0) & (speed[:-1] > 0.0) & (np.abs(course[1:] - course[:-1]) < 1e-9) & moved
+    same = np.abs(course[1:] - course[:-1]) < SAME_COURSE_RAD
+    held[1:] = (speed[1:] > 0.0) & (speed[:-1] > 0.0) & same & moved
     frame = LocalFrame(a[0, 1], a[0, 2], 0.0)
     en = np.array([frame.to_en(la, lo) for la, lo in a[:, 1:3]])
     bins = []

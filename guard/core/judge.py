@@ -176,19 +176,20 @@ class Judge:
         return self.health.readmit(sensor, t_us, gnss_index, silent)
 
     def reanchor(self, ekf: NavEKF, fix: GnssFix, en: tuple[float, float], gnss_aid, max_coast_m: float,
-                 gnss_index: int, widen: Callable[[float], float] | None = None) -> list[Event]:
+                 gnss_index: int, widen: Callable[[float], float] | None = None, held: bool = False) -> list[Event]:
         """An exclusion has a bounded life: once the other sensors cannot hold the estimate to within
         max_coast_m (1 sigma), the GNSS can be neither confirmed nor refuted; the estimate is
         re-anchored on it, and its alarm stands (latched, no Cleared). What a patient attacker gains:
         an offset that grew slowly enough to be excluded, held out for that long, is then taken.
         Asked at each fix while the GNSS is out, and at once after an alarm's rewind (Monitor.finish),
         whose estimate may already be beyond holding (GNSS alone: nothing else held it). `widen`: the
-        filter's uncertainty as far as the drift measured on this vehicle makes it (guard.core.drift)."""
+        filter's uncertainty as far as the drift measured on this vehicle makes it (guard.core.drift). `held`:
+        the fix's course was held by its receiver (GnssAiding.held_course), its velocity's direction unknown."""
         filtered = math.sqrt(ekf.P[X, X] + ekf.P[Y, Y])
         sigma = filtered if widen is None else widen(filtered)
         if sigma <= max_coast_m:
             return []
-        anchor(ekf, fix, en, gnss_aid.sigma_pos(fix), gnss_aid.sigma_vel(fix), self.history.delay_s)
+        anchor(ekf, fix, en, gnss_aid.sigma_pos(fix), gnss_aid.sigma_vel(fix, held), self.history.delay_s)
         at_fix = ekf.x.copy()                       # the anchor where the fix shows the vehicle
         at_fix[X], at_fix[Y] = en
         self.history.anchored(fix.t_us, at_fix)

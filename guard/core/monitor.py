@@ -126,6 +126,8 @@ class Monitor:
     def _reset(self) -> None:
         f = self.cfg.filter
         self.ekf: NavEKF | None = None
+        self._held = False                          # the latest fix's course was held by its receiver
+        self.gnss_aid.forget_course()               # and a new filter's first fix starts the course over
         self.frame: LocalFrame | None = None
         self.declination = 0.0
         self.t_us: int | None = None
@@ -299,6 +301,7 @@ class Monitor:
             return events + self._reinitialise(fix.t_us, f"the filter diverged ({why})") + self._initialise(fix)
         ekf, history = self.ekf, self.history
         self._fix, self._fix_en = fix, self.frame.to_en(fix.lat_deg, fix.lon_deg)
+        events += self._held_course(fix)
         # the acceleration a late fix lags by, where its latency's uncertainty is set (GnssAiding.latency_spread);
         # on GNSS alone no IMU for a fix to lag
         lagging = bool(self.inertial) and self.gnss_aid.latency_sigma(bool(self.ground)) > 0.0
@@ -315,16 +318,7 @@ class Monitor:
         if delayed:                 # the position's correction, carried to the state the velocity is tested on
             xd = xd + state_minus(ekf.x, before)
         if self.cfg.filter.use_gnss_velocity and fix.vel_n_mps is not None:
-            held = self.gnss_aid.held_course(fix)
-            if held:
-                self.skipped["gnss_course_held"] += 1
-                if not self._held_said:
-                    self._held_said = True
-                    events.append(Notice(fix.t_us, "info", "the receiver holds its course over ground at low "
-                                         "speed (a course repeated to the last digit under "
-                                         f"{HELD_COURSE_MAX_MPS:g} m/s): such a fix's velocity is taken with its "
-                                         "direction unknown (counted as gnss_course_held)"))
-            aid = self.gnss_aid.velocity(fix, xd, accel, bool(self.ground), held)
+            aid = self.gnss_aid.velocity(fix, xd, accel, bool(self.ground), self._held)
             self.witnesses.add_course(fix, xd, ekf.P[TH, TH], self.ground, across_track(aid.R, fix))
             events += self._measure(Sensor.GNSS_VEL, fix.t_us, aid)
         self._probe(fix)
@@ -355,6 +349,21 @@ class Monitor:
         return Estimate(t_us, gnss_index, float(x[0]), float(x[1]), float(x[TH]), x.copy(),
                         np.diagonal(self.ekf.P).copy(), (f.lat0, f.lon0, f.alt0), self._fix_en)
 
+    def _held_course(self, fix: GnssFix) -> list[Event]:
+        """Whether the fix's course was held by its receiver (GnssAiding.held_course): its velocity, tested
+        or anchored on, then has its direction taken as unknown. Counted, and said once."""
+        self._held = (self.cfg.filter.use_gnss_velocity and fix.vel_n_mps is not None
+                      and self.gnss_aid.held_course(fix))
+        if not self._held:
+            return []
+        self.skipped["gnss_course_held"] += 1
+        if self._held_said:
+            return []
+        self._held_said = True
+        return [Notice(fix.t_us, "info", "the receiver holds its course over ground at low speed (a course "
+                       f"repeated to the last digit under {HELD_COURSE_MAX_MPS:g} m/s): such a fix's velocity is "
+                       "taken with its direction unknown (counted as gnss_course_held)")]
+
     def _reanchor(self, fix: GnssFix) -> list[Event]:
         """An exclusion has a bounded life (Judge.reanchor), as long as the filter's uncertainty and the
         drift measured on this vehicle (guard.core.drift) say the estimate can be held."""
@@ -367,7 +376,7 @@ class Monitor:
                  not self.cfg.filter.use_gnss_velocity) and not self.ground and bool(self.inertial)
         widen = (lambda sigma: self.drift.widened(sigma, coast_s)) if alone else None
         events = self.judge.reanchor(self.ekf, fix, self._fix_en, self.gnss_aid, self.cfg.max_coast_m,
-                                     self.gnss_index, widen)
+                                     self.gnss_index, widen, self._held)
         if events:
             self._coast_from = fix.t_us
         return events

@@ -20,8 +20,8 @@ def tool(*args):
 def test_a_simulated_receiver_holding_its_course_is_shown_and_one_that_does_not_is_not(tmp_path):
     """The route at 1 to 2.5 m/s for two minutes, its receiver holding its course below 1.5 m/s and not:
     every fix under the hold repeats its course and none over it; the held courses stand further from
-    the track than the fresh ones; the other receiver repeats none. A folder that is not there is an
-    error naming it."""
+    the track than the fresh ones; the other receiver repeats none. The two logs end to end (a reboot)
+    are read to the end. A folder that is not there is an error naming it."""
     base = scn.load("clean")
     route = dataclasses.replace(base.route, waypoints_m=tuple((p[0], p[1], v)
                                                                for p, v in zip(base.route.waypoints_m, SLOW)))
@@ -41,5 +41,13 @@ def test_a_simulated_receiver_holding_its_course_is_shown_and_one_that_does_not_
     assert held["held_n"] > 100 and held["held_off_mps"] > 2 * held["fresh_off_mps"], held
     assert sum(b["held"] for b in free["bins"]) == 0 and free["held_n"] == 0
     assert "held.tlog: " in got.stdout and "course repeated by speed" in got.stdout
+    # a reboot: the two logs end to end, the second's clock starting again, read on as a stretch of its own
+    both = tmp_path / "both"
+    both.mkdir()
+    (both / "reboot.tlog").write_bytes((tmp_path / "held.tlog").read_bytes() + (tmp_path / "free.tlog").read_bytes())
+    got = tool(both, "--json", tmp_path / "both.json")
+    assert got.returncode == 0, got.stderr
+    reboot = json.loads((tmp_path / "both.json").read_text())[0]
+    assert reboot["fixes"] >= 0.95 * (held["fixes"] + free["fixes"]), (reboot["fixes"], held["fixes"], free["fixes"])
     missing = tool(tmp_path / "nowhere")
     assert missing.returncode == 2 and "nowhere: no such file or folder" in missing.stderr

@@ -18,7 +18,7 @@ A receiver holds its course over ground where the vehicle moves too slowly for a
 and reports its speed along the last course it had (HELD_COURSE_MAX_MPS): a fix whose course repeats the
 last one's to the last digit, that slowly but faster than its noise (HELD_NOISE), has its velocity's
 direction taken as unknown, R widened by (2 |v|)^2 on both axes (a held course is off by up to the angle
-turned since, as far as twice the speed).
+turned since, as far as twice the speed), and so is the velocity a re-anchoring on that fix takes.
 The velocity's R can also hold the receiver's latency, as far as it is unknown (latency_spread, off
 by default): on the 47 real flights of the README the GNSS velocity innovations grow with the
 acceleration, more along it than across it, as a fix 0.05 to 0.35 s late would make them on the
@@ -70,6 +70,12 @@ HELD_COURSE_MAX_MPS = 3.0
 # for. Above it a held course can stand across a turn. (Widened down to standing still, the real logs'
 # hovering copters caught fewer 0.3 m/s position ramps, which their velocity gave away: README.)
 HELD_NOISE = 2.0
+# A course repeated "to the last digit": the course comes as an angle (GPS_RAW_INT's cdeg, DataFlash's
+# degrees) and the speed apart, and the velocity built from them gives the same angle back to a few 1e-16
+# rad, or 1e-9 where a source carries it as float32 components (a ULog's or DroneCAN's, of a receiver that
+# sends speed and course); a fresh course's noise, a degree or so, comes this near the last one's about
+# once in 10^4 fixes.
+SAME_COURSE_RAD = 1e-6
 
 
 class GnssAiding:
@@ -124,17 +130,25 @@ class GnssAiding:
             return f.q_pos_m
         return f.q_pos_m * min(max(fix.hdop, 1.0), ACC_CAP)
 
-    def sigma_vel(self, fix: GnssFix) -> float:
+    def sigma_vel(self, fix: GnssFix, held: bool = False) -> float:
+        """The velocity's noise on each axis; held (held_course): widened by twice the speed, as far as a
+        held course can be off (turned back on itself)."""
         f = self.f
         if not fix.vel_acc_mps:
-            return f.gnss_vel_unreported_mps
-        return min(max(f.gnss_vel_sigma_mps, fix.vel_acc_mps), ACC_CAP * f.gnss_vel_sigma_mps)
+            sigma = f.gnss_vel_unreported_mps
+        else:
+            sigma = min(max(f.gnss_vel_sigma_mps, fix.vel_acc_mps), ACC_CAP * f.gnss_vel_sigma_mps)
+        return math.hypot(sigma, 2.0 * math.hypot(fix.vel_e_mps, fix.vel_n_mps)) if held else sigma
 
     def position(self, fix: GnssFix, en: tuple[float, float], x: np.ndarray) -> Aid:
         """en: the fix in the local frame (LocalFrame.to_en)."""
         e, n = en
         # R: the measurement noise covariance
         return Aid(np.array([e, n]), x[:2].copy(), H_POS, np.eye(2) * self.sigma_pos(fix) ** 2)
+
+    def forget_course(self) -> None:
+        """A new filter: its first fix starts the course over (held_course compares with none)."""
+        self._last_course = None
 
     def held_course(self, fix: GnssFix) -> bool:
         """Whether this fix's course over ground repeats the last fix's to the last digit while it moves
@@ -144,9 +158,8 @@ class GnssAiding:
         speed = math.hypot(fix.vel_e_mps, fix.vel_n_mps)
         course = math.atan2(fix.vel_e_mps, fix.vel_n_mps) if speed > 0.0 else None
         last, self._last_course = self._last_course, (course, fix.lat_deg, fix.lon_deg)
-        # the course comes as an angle (GPS_RAW_INT's cdeg, DataFlash's degrees) and the speed apart: the
-        # velocity built from them gives the same angle back to a few 1e-16 rad
-        return (course is not None and last is not None and last[0] is not None and abs(course - last[0]) < 1e-9
+        return (course is not None and last is not None and last[0] is not None
+                and abs(course - last[0]) < SAME_COURSE_RAD
                 and last[1:] != (fix.lat_deg, fix.lon_deg)
                 and HELD_NOISE * self.sigma_vel(fix) < speed < HELD_COURSE_MAX_MPS)
 
@@ -157,10 +170,7 @@ class GnssAiding:
         held by the receiver (held_course), its direction unknown."""
         hx, H = gnss_velocity_model(x)
         lag = self.latency_spread(accel_en, ground)
-        R = np.eye(2) * self.sigma_vel(fix) ** 2 + np.outer(lag, lag)
-        if held:
-            # R += (2 |v|)^2 I: a held course is off by up to the angle turned since, as far as twice the speed
-            R += np.eye(2) * (2.0 * math.hypot(fix.vel_e_mps, fix.vel_n_mps)) ** 2
+        R = np.eye(2) * self.sigma_vel(fix, held) ** 2 + np.outer(lag, lag)
         return Aid(np.array([fix.vel_e_mps, fix.vel_n_mps]), hx, H, R)
 
     def latency_sigma(self, ground: bool) -> float:
