@@ -1,6 +1,7 @@
 """Does the model fit the vehicle? The innovations of a well-modelled sensor, normalised by their
 covariance (z = r_i / sqrt(S_ii)), have unit variance. Over minutes, per sensor, the mean of z^2 of
-the fused innovations (each clipped at CLIP^2, so that one glitch does not speak for minutes) says by
+the fused innovations (each clipped at CLIP^2, so that one glitch does not speak for minutes; a held
+course's, whose error is the course it repeats, left out: Innovation.modelled) says by
 how much the noise model is off. A model that does not fit is said as a WARNING naming the sensor
 and the factor ("gnss_vel innovations 2.3x the model: run guard tune"), not as an attack alarm; it is
 said again only when the factor grew by REPEAT_GROWTH, or after REPEAT_S. On wheels the

@@ -63,6 +63,8 @@ class CourseWitness(NamedTuple):      # one GNSS velocity at speed (ground vehic
                                       # wheels allow (the sensors' swing ahead of the axle, the tyres' slip)
     speed: float
     r0: float                         # course - (heading + the angle of the sideways velocity the wheels allow)
+    noise: float                      # the course's own noise (rad): the fix's velocity noise across its track
+                                      # over its speed
 
 
 def compass_less_gyro(mag, gyro_bias: float) -> tuple[np.ndarray, np.ndarray]:
@@ -84,7 +86,6 @@ class Witnesses:
         self.course_run: deque[CourseWitness] = deque()     # the same over RUN_S: an alarm's whole run
         self.mag_run: deque[HeadingWitness] = deque()
         self.last_vel = (np.zeros(2), np.eye(2))   # the latest GNSS velocity innovation and its S
-        self.vel_sigma = f.gnss_vel_sigma_mps       # the latest fix's velocity noise (its R)
         self.turned = 0.0                           # how far the compass turned from the gyro over the last
                                                     # run that named it (rad, compass_turned)
 
@@ -99,14 +100,20 @@ class Witnesses:
         self.mag_run.append(w)
         keep_since(self.mag_run, w.t_us - RUN_S * 1e6)
 
-    def add_course(self, fix: GnssFix, x: np.ndarray, P_heading: float, ground: bool, vel_sigma: float) -> None:
+    def add_course(self, fix: GnssFix, x: np.ndarray, P_heading: float, ground: bool, vel_sigma: float,
+                   held: bool = False) -> None:
         """The GNSS course against the filter's heading x (ground vehicles, at speed); vel_sigma the
-        fix's velocity noise."""
-        self.vel_sigma = vel_sigma
+        fix's velocity noise across its track. A course the receiver held (`held`) is no witness of the
+        heading: it is left out, the witnesses before it kept as long as they would have been."""
         speed = math.hypot(fix.vel_e_mps, fix.vel_n_mps)
         if not ground or speed < self.min_speed:
             self.course.clear()            # standing still (or nearly): no course to speak of
             self.course_run.clear()
+            return
+        t_us = fix.t_us - int(self.f.gnss_delay_s * 1e6)
+        if held:
+            keep_since(self.course, t_us - 2 * WITNESS_S * 1e6 + 1, at=2)
+            keep_since(self.course_run, t_us - RUN_S * 1e6, at=2)
             return
         course = math.atan2(fix.vel_n_mps, fix.vel_e_mps)
         # against the heading and what the wheels allow alone: the sensors' swing ahead of the axle and
@@ -114,8 +121,8 @@ class Witnesses:
         allowed = math.atan2(x[LA] * x[W] - x[KS] * x[W] * x[VX] * abs(x[VX]), x[VX])
         r0 = math.remainder(course - x[TH] - allowed, math.tau)
         r = math.remainder(course - x[TH] - math.atan2(x[VY], x[VX]), math.tau)    # against the filter's track
-        self.course.append(CourseWitness(r, math.sqrt((vel_sigma / speed) ** 2 + P_heading),
-                                         fix.t_us - int(self.f.gnss_delay_s * 1e6), course - allowed, speed, r0))
+        self.course.append(CourseWitness(r, math.sqrt((vel_sigma / speed) ** 2 + P_heading), t_us,
+                                         course - allowed, speed, r0, vel_sigma / speed))
         keep_since(self.course, self.course[-1].t_us - 2 * WITNESS_S * 1e6 + 1, at=2)
         self.course_run.append(self.course[-1])
         keep_since(self.course_run, self.course[-1].t_us - RUN_S * 1e6, at=2)
@@ -229,12 +236,13 @@ class Witnesses:
             d = tt - tt.mean()
             return float(d @ y) / float(d @ d), sigma / math.sqrt(float(d @ d))
         s_gm, e_gm = slope(t, gyro - np.unwrap(heading), self.f.heading_sigma_rad)
-        course = [c[2:5] for c in course if c.t_us >= t0]
+        course = [(c.t_us, c.course, c.noise) for c in course if c.t_us >= t0]
         if len(course) < 3 or course[-1][0] - course[0][0] < 0.85 * WITNESS_S * 1e6:
             return s_gm / e_gm, None, None
-        tc, course, speed = np.array(course).T
+        tc, course, noise = np.array(course).T
         tc = (tc - t0) / 1e6
-        s_gc, e_gc = slope(tc, np.interp(tc, t, gyro) - np.unwrap(course), self.vel_sigma / speed.min())
+        # each course as noisy as the noisiest in the window (the slowest, or the least sure, fix)
+        s_gc, e_gc = slope(tc, np.interp(tc, t, gyro) - np.unwrap(course), float(noise.max()))
         return s_gm / e_gm, s_gc / e_gc, (s_gc - s_gm) / math.hypot(e_gm, e_gc)
 
     def jumped(self, gyro_bias: float) -> bool:

@@ -50,8 +50,9 @@ class Judge:
         return max(self.ratios.values(), default=0.0) < CALM_RATIO
 
     def test(self, sensor: Sensor, t_us: int, r: np.ndarray, S: np.ndarray, ekf: NavEKF, now_us: int,
-             gnss_index: int, record: bool) -> tuple[list[Event], bool]:
-        """Run the detector on one sensor's innovation; decide whether to fuse it."""
+             gnss_index: int, record: bool, modelled: bool = True) -> tuple[list[Event], bool]:
+        """Run the detector on one sensor's innovation; decide whether to fuse it (`modelled`:
+        Innovation's)."""
         stat, thr, hits = self.detector.test(sensor, t_us, r, self.longrun.scale(sensor, S) if self.longrun else S)
         self.ratios[sensor] = max((g / h for g, h in zip(stat, thr) if 0.0 < h < math.inf), default=0.0)
         if sensor == Sensor.GNSS_VEL:
@@ -63,8 +64,8 @@ class Judge:
         else:
             events, fused = self._readmission(sensor, t_us, r, S, hits, ekf, now_us, gnss_index)
         if record:
-            events.insert(0, Tested(Innovation(t_us, sensor, CHANNELS[sensor][:len(r)], r, S, fused), gnss_index,
-                                    stat, thr))
+            innovation = Innovation(t_us, sensor, CHANNELS[sensor][:len(r)], r, S, fused, modelled)
+            events.insert(0, Tested(innovation, gnss_index, stat, thr))
         return events, fused
 
     def _alarms(self, sensor, t_us, hits, stat, thr, ekf, now_us, gnss_index) -> list[Event]:

@@ -19,7 +19,9 @@ later, by F, on a vehicle that wanders, as any test on that vehicle would be.
 F adapts as the compass offset does: slowly (the mean forgets over TAU_S), within bounds
 (1 <= F <= F_MAX: never more sensitive than the model, never blind), and only while every test is
 calm (Judge.calm): a slow attack pushes some statistic up long before its alarm, and while it does
-F learns nothing from it, so it cannot widen the test it is being caught by. It starts at 1 (the
+F learns nothing from it, so it cannot widen the test it is being caught by. A fix whose variance
+was widened past the model (a held course: Innovation.modelled) is left out as a test not calm is:
+the block being filled is dropped. It starts at 1 (the
 model as configured) and takes a few blocks to learn: an alarm in the first seconds of a wandering
 sensor is still possible. Above WARN_F the model does not fit: said once per sensor, as a WARNING
 naming the factor (the fix is `guard tune`, or a noise model for that vehicle).

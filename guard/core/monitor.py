@@ -319,8 +319,8 @@ class Monitor:
             xd = xd + state_minus(ekf.x, before)
         if self.cfg.filter.use_gnss_velocity and fix.vel_n_mps is not None:
             aid = self.gnss_aid.velocity(fix, xd, accel, bool(self.ground), self._held)
-            self.witnesses.add_course(fix, xd, ekf.P[TH, TH], self.ground, across_track(aid.R, fix))
-            events += self._measure(Sensor.GNSS_VEL, fix.t_us, aid)
+            self.witnesses.add_course(fix, xd, ekf.P[TH, TH], self.ground, across_track(aid.R, fix), self._held)
+            events += self._measure(Sensor.GNSS_VEL, fix.t_us, aid, modelled=not self._held)
         self._probe(fix)
         if delayed:                 # the correction applies to the stored states too: the next fix sees it
             history.shift(state_minus(ekf.x, before))
@@ -557,16 +557,26 @@ class Monitor:
                        "each other alone (jumps, freezes, drifts)")]
 
     # -- testing and fusing -----------------------------------------------------------------------
-    def _measure(self, sensor: Sensor, t_us: int, aid: Aid) -> list[Event]:
+    def _measure(self, sensor: Sensor, t_us: int, aid: Aid, modelled: bool = True) -> list[Event]:
         r, S, PHT = self.ekf.innovation(aid.z, aid.hx, aid.H, aid.R)
-        events, fused = self._test(sensor, t_us, r, S)
+        events, fused = self._test(sensor, t_us, r, S, modelled)
         if fused:
             self.ekf.fuse(r, S, aid.H, aid.R, PHT)
         return events
 
-    def _test(self, sensor: Sensor, t_us: int, r: np.ndarray, S: np.ndarray) -> tuple[list[Event], bool]:
-        events, fused = self.judge.test(sensor, t_us, r, S, self.ekf, self.t_us, self.gnss_index, self.record_tests)
+    def _test(self, sensor: Sensor, t_us: int, r: np.ndarray, S: np.ndarray,
+              modelled: bool = True) -> tuple[list[Event], bool]:
+        """Test one innovation and learn from it. One whose variance was widened past the sensor's model
+        (`modelled` False: a held course) is tested and fused, but the model's fit and the wander leave
+        it out (its error is the course it repeats, not the receiver's noise; the wander's block being
+        filled is dropped)."""
+        events, fused = self.judge.test(sensor, t_us, r, S, self.ekf, self.t_us, self.gnss_index, self.record_tests,
+                                        modelled)
         calm = self.ekf.learning = self.judge.calm      # nothing is learnt while a test is near its threshold
+        if not modelled:
+            if self.longrun is not None:
+                self.longrun.interrupt(sensor)      # a block is not closed across it, with a gap in it
+            return events, fused
         if fused:
             self.fit.add(sensor, t_us, r, S)
         if self.longrun is not None and fused and calm:

@@ -19,7 +19,10 @@ class Innovation:
     """One fusion of one sensor (PX4's record): r = y - ŷ and its covariance S = H P Hᵀ + R.
 
     `r` has shape (m,), `S` shape (m, m), in the units of CHANNELS. `fused` is False when the
-    measurement was tested but not fused (sensor excluded while judged attacked).
+    measurement was tested but not fused (sensor excluded while judged attacked). `modelled` is False
+    where the measurement's error is not the sensor's modelled noise and its variance was widened for
+    it (a course the receiver held at low speed, whose error repeats fix after fix): the model's fit,
+    the wander and `guard tune` leave it out.
     """
 
     t_us: int
@@ -28,6 +31,7 @@ class Innovation:
     r: np.ndarray
     S: np.ndarray
     fused: bool
+    modelled: bool = True
 
 
 @dataclass(frozen=True, slots=True)

@@ -14,7 +14,10 @@ when the model fits. From logs without an attack, guard tune fits, in this order
    or receiver sits well inside its model sample by sample while its mean over a second wanders,
    and a CUSUM sums the wander: fitted to the samples alone, the noise came out smaller and the
    same logs raised more alarms with the profile than without it). On wheels the sideways
-   constraint, tested with the accelerometer, is fitted apart (`lateral_sigma_mps`);
+   constraint, tested with the accelerometer, is fitted apart (`lateral_sigma_mps`). A fix whose
+   course the receiver held is left out (Innovation.modelled): its innovation is the held course's
+   error, the same fix after fix, not the receiver's noise (taken in, it read as a wander, and a slow
+   car's receiver's velocity floor came out over three times its own);
 3. the compass's offset (`filter.mag_offset_rad`) and, on wheels, their slip (`filter.slip_rad_per_mps2`)
    and how far ahead of the axle the sensors sit (`filter.sensors_ahead_m`): what the filter learnt,
    averaged over the logs;
@@ -97,7 +100,7 @@ class Innovations(Sink):
 
     def on_events(self, events) -> None:
         for e in events:
-            if isinstance(e, Tested) and e.innovation.fused:
+            if isinstance(e, Tested) and e.innovation.fused and e.innovation.modelled:
                 i = e.innovation
                 for s, z in parts(i.sensor, normalised(i.r, i.S)):
                     self.sum[s] = self.sum.get(s, 0.0) + float(z @ z)

@@ -4,6 +4,8 @@
     /estimate/fix           foxglove.LocationFix (protobuf)  each Estimate, east/north variances as covariance
     /estimate/state         guard.EstimateState (JSON)       each Estimate: x and the diagonal of P
     /innovations/<sensor>   guard.Innovation (JSON)          each Tested: r, diag(S), statistic, threshold
+                                                             (modelled: false where S was widened past the
+                                                             sensor's model, a held course)
     /alarms                 guard.Alarm (JSON)               each Alarm (kind "alarm") and Cleared ("cleared")
     /log                    foxglove.Log (protobuf)          alarms (ERROR), cleared (INFO), notices
 
@@ -63,7 +65,7 @@ JSON_SCHEMAS = {
         t_us=_INT, gnss_index=_INT, east_m=_NUM, north_m=_NUM, yaw_rad=_NUM, x=_NUMS, P_diag=_NUMS),
     "guard.Innovation": dict(
         t_us=_INT, gnss_index=_INT, sensor=_STR, channels={"type": "array", "items": _STR}, r=_NUMS,
-        S_diag=_NUMS, statistic=_NUMS, threshold=_NUMS, fused=_BOOL),
+        S_diag=_NUMS, statistic=_NUMS, threshold=_NUMS, fused=_BOOL, modelled=_BOOL),
     "guard.Alarm": dict(
         kind={"enum": ["alarm", "cleared"]}, t_us=_INT, gnss_index=_INT, sensor=_STR, channel=_STR,
         statistic=_NUM, threshold=_NUM, offset=_NUM, detector=_STR, standing=_BOOL),
@@ -194,7 +196,8 @@ class McapLog(Sink):
         self._json(f"/innovations/{inn.sensor}", "guard.Innovation", inn.t_us, dict(
             t_us=inn.t_us, gnss_index=int(ev.gnss_index), sensor=inn.sensor, channels=list(inn.channels),
             r=_nums(inn.r), S_diag=_nums(np.diag(np.atleast_2d(inn.S))), statistic=_nums(ev.statistic),
-            threshold=_nums(ev.threshold), fused=bool(inn.fused)))
+            threshold=_nums(ev.threshold), fused=bool(inn.fused),
+            modelled=bool(inn.modelled)))
 
     def _alarm(self, ev: Alarm) -> None:
         self._json("/alarms", "guard.Alarm", ev.t_us, dict(

@@ -114,3 +114,91 @@ def test_a_step_on_a_slow_drive_with_a_held_course_is_still_caught(tmp_path, see
     assert after and all(a["gnss_index"] >= k0 for a in report["alarms"]), report["alarms"][:3]
     assert after[0]["sensor"] == "gnss_pos"
     assert after[0]["gnss_index"] - k0 <= 10                    # 10 Hz: within 1 s
+
+
+def test_tune_leaves_a_held_course_out(tmp_path):
+    """A held course's innovation is the course's error, the same fix after fix, not the receiver's
+    noise: `guard tune` leaves it out (Innovation.modelled). The same drive as its receiver would send
+    it with a fresh course (the knob changes the course alone) is the reference: tuned on either, the
+    GNSS velocity's floor is the same within 15 %. Taken in, the repeated error read as a wander and
+    the floor came out 3.3 times the receiver's."""
+    from guard.runtime.tune import tune
+    floors = {}
+    for hold in (0.0, HOLD_MPS):
+        sc = scenario.load("clean")
+        route = dataclasses.replace(sc.route, waypoints_m=tuple((p[0], p[1], v)
+                                                                for p, v in zip(sc.route.waypoints_m, SLOW)))
+        sc = dataclasses.replace(sc, duration_s=120.0, route=route,
+                                 noise=dataclasses.replace(sc.noise, gnss_course_hold_mps=hold))
+        log = str(tmp_path / f"tune-{hold}.tlog")
+        run(sc, 2, tlog=log)
+        profile, _ = tune([log], parse({}), say=lambda line: None)
+        floors[hold] = profile["filter"]["gnss_vel_sigma_mps"]
+    assert floors[HOLD_MPS] == pytest.approx(floors[0.0], rel=0.15), floors
+
+
+def test_the_model_fit_and_the_wander_leave_a_held_fix_out(tmp_path):
+    """Every held fix's velocity innovation is marked unmodelled, and no other; one such changes
+    neither the fit's mean, and drops the wander's block being filled (not closed later across it)."""
+    from guard.core.monitor import Monitor
+    from guard.model.events import Tested
+    from guard.model.sensors import Sensor
+    from guard.sources.tlog import TlogReader, tlog_samples
+    tlog, _ = slow_drive(tmp_path, 1)
+    m = Monitor(parse({"monitor": {"max_wander_factor": 4.0}}).monitor)
+    reader = TlogReader(str(tlog))
+    tested = [e.innovation for s in tlog_samples(reader) for e in m.step(s) if isinstance(e, Tested)]
+    reader.close()
+    unmodelled = [i for i in tested if not i.modelled]
+    assert {i.sensor for i in unmodelled} == {Sensor.GNSS_VEL}
+    assert len(unmodelled) == m.skipped["gnss_course_held"] > 100
+    t = m.t_us + 1
+    r, S = np.array([0.01, -0.01]), np.eye(2) * 0.01
+    m._test(Sensor.GNSS_VEL, t, r, S)                       # a modelled one is taken: a block is being filled
+    fit_before = list(m.fit.acc["gnss_vel"])
+    assert m.longrun.blocks[Sensor.GNSS_VEL].sum is not None
+    m._test(Sensor.GNSS_VEL, t + 1, r, S, modelled=False)
+    assert m.fit.acc["gnss_vel"] == fit_before
+    assert Sensor.GNSS_VEL not in m.longrun.blocks
+
+
+def course_fix(t_s: float, speed: float, course: float = 0.0) -> GnssFix:
+    return GnssFix(int(t_s * 1e6), True, 47.0, 8.0, 400.0, speed * math.sin(course), speed * math.cos(course),
+                   0.5, 0.1)
+
+
+def test_a_held_course_is_no_witness_of_the_heading_and_ages_the_ones_before():
+    """Isolation tells a turning compass from a turning course by their slopes: a held course would
+    read as a course that stopped turning. It is left out; the witnesses before it age as they would
+    have (none is left after a long held stretch at speed to name a sensor by)."""
+    from guard.core.isolation import Witnesses
+    w = Witnesses(FilterConfig(), 0.3)
+    x = np.zeros(14)
+    for k in range(20):
+        w.add_course(course_fix(k / 10, 3.0), x, 1e-4, True, 0.1)
+    n = len(w.course)
+    w.add_course(course_fix(1.95, 2.5), x, 1e-4, True, 0.1, held=True)
+    assert len(w.course) == n
+    for k in range(30):
+        w.add_course(course_fix(3.0 + k, 2.5), x, 1e-4, True, 0.1, held=True)
+    assert not w.course and not w.course_run
+
+
+def test_the_turns_weigh_each_course_by_its_own_noise():
+    """A gyro turning 0.1 rad/s while the compass and the course hold still: the gyro's turn against the
+    course is as sure as the least sure course in the window allows (one fix nine times noisier
+    shrinks its z nine times), not as the latest fix's noise says."""
+    from guard.core.isolation import HeadingWitness, Witnesses
+    x = np.zeros(14)
+
+    def z_gc(noisy_at: int | None) -> float:
+        w = Witnesses(FilterConfig(), 0.3)
+        for k in range(101):
+            w.add_heading(HeadingWitness(int(k * 0.02e6), 0.0, 0.1))
+        for k in range(21):
+            w.add_course(course_fix(k / 10, 3.0), x, 1e-4, True, 0.9 if k == noisy_at else 0.1)
+        return w.turns(int(2e6), 0.0)[1]
+
+    quiet, noisy = z_gc(None), z_gc(10)
+    assert abs(quiet) > 5.0
+    assert abs(noisy) == pytest.approx(abs(quiet) / 9.0, rel=0.01)

@@ -117,7 +117,7 @@ def test_round_trip(tmp_path):
     inn = json.loads(by_topic["/innovations/gnss_pos"][0][2].data)
     assert inn == {"t_us": t_of(0), "gnss_index": 0, "sensor": "gnss_pos", "channels": ["east", "north"],
                    "r": [0.1, -0.2], "S_diag": [1.0, 2.0], "statistic": [0.5, 1.5], "threshold": [10.0, None],
-                   "fused": True}
+                   "fused": True, "modelled": True}
 
     alarms = [json.loads(m.data) for _, _, m in by_topic["/alarms"]]
     assert alarms == [
