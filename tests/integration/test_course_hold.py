@@ -15,7 +15,7 @@ import pytest
 import guard.core.aiding.gnss as gnss
 from guard.config import parse
 from guard.core.aiding.gnss import HELD_COURSE_MAX_MPS, GnssAiding
-from guard.core.ekf import FilterConfig
+from guard.core.ekf import VX, FilterConfig
 from guard.model.samples import GnssFix
 from guard.runtime.replay import replay
 from guard_sim import scenario
@@ -202,3 +202,45 @@ def test_the_turns_weigh_each_course_by_its_own_noise():
     quiet, noisy = z_gc(None), z_gc(10)
     assert abs(quiet) > 5.0
     assert abs(noisy) == pytest.approx(abs(quiet) / 9.0, rel=0.01)
+
+
+def test_a_held_fix_measures_its_speed_along_the_filters_track():
+    """Its speed is the one thing a held fix measured: z - h(x) lies along the filter's own track,
+    H is the speed's Jacobian there, R the receiver's own noise along it and the held widening across."""
+    aid = GnssAiding(FilterConfig())
+    x = np.zeros(14)
+    x[VX] = 2.0                                     # the filter: 2 m/s along its heading (east, at 0)
+    f = fix(0.0, 2.5)                                   # the receiver: 2.5 m/s, its course held north
+    held = aid.velocity(f, x, None, True, held=True)
+    r = held.z - held.hx
+    assert r == pytest.approx([0.5, 0.0])               # the speed's difference, along the track (east)
+    assert held.H[1] == pytest.approx(np.zeros(14))     # nothing measured across it
+    sigma = aid.sigma_vel(f)
+    assert held.R == pytest.approx(np.diag([sigma ** 2, aid.sigma_vel(f, held=True) ** 2]))
+    x[VX] = 0.1                                     # the filter's own track no surer than the course
+    slow = aid.velocity(f, x, None, True, held=True)
+    assert slow.z == pytest.approx([0.0, 2.5]) and slow.R == pytest.approx(np.eye(2) * aid.sigma_vel(f, True) ** 2)
+
+
+@pytest.mark.parametrize("vehicle", ["ground", "air"])
+def test_a_course_held_up_to_three_metres_a_second_through_every_turn_raises_no_alarm(tmp_path, monkeypatch, vehicle):
+    """A receiver that holds its course below 3 m/s (a car's often does) while the route is driven at 1
+    to 2.5 m/s: no course is ever fresh, and the held one stands across every turn. The speed measured
+    along the filter's own track leaves its error out of the innovation: quiet on two seeds. The
+    control, the held fix taken as a widened vector (the error within 1 sigma, but the same fix after
+    fix, which the CUSUM sums), alarms."""
+    config = parse({"monitor": {"vehicle": vehicle}})
+    logs = []
+    for seed in (1, 2):
+        sc = scenario.load("clean")
+        route = dataclasses.replace(sc.route, waypoints_m=tuple((p[0], p[1], v)
+                                                                for p, v in zip(sc.route.waypoints_m, SLOW)))
+        sc = dataclasses.replace(sc, duration_s=120.0, route=route,
+                                 noise=dataclasses.replace(sc.noise, gnss_course_hold_mps=3.0))
+        logs.append(str(tmp_path / f"hold3-{seed}.tlog"))
+        run(sc, seed, tlog=logs[-1])
+        report = replay(logs[-1], config)
+        assert report["alarms"] == [], report["alarms"][:3]
+        assert report["skipped"]["gnss_course_held"] > 1000
+    monkeypatch.setattr(GnssAiding, "held_speed", lambda self, fix, hx, H: None)
+    assert any(replay(log, config)["alarms"] for log in logs)

@@ -17,8 +17,11 @@ defaults, not the simulator's).
 A receiver holds its course over ground where the vehicle moves too slowly for a course to mean anything,
 and reports its speed along the last course it had (HELD_COURSE_MAX_MPS): a fix whose course repeats the
 last one's to the last digit, that slowly but faster than its noise (HELD_NOISE), has its velocity's
-direction taken as unknown, R widened by (2 |v|)^2 on both axes (a held course is off by up to the angle
-turned since, as far as twice the speed), and so is the velocity a re-anchoring on that fix takes.
+direction taken as unknown: its speed, which the receiver did measure, is tested and fused along the
+filter's own track, and across it nothing is (held_speed); where the filter's own speed is too small to
+give a track, the fix's vector is taken with R widened by (2 |v|)^2 on both axes (a held course is off
+by up to the angle turned since, as far as twice the speed), and so is the velocity a re-anchoring on
+that fix takes.
 The velocity's R can also hold the receiver's latency, as far as it is unknown (latency_spread, off
 by default): on the 47 real flights of the README the GNSS velocity innovations grow with the
 acceleration, more along it than across it, as a fix 0.05 to 0.35 s late would make them on the
@@ -167,11 +170,38 @@ class GnssAiding:
                  held: bool = False) -> Aid:
         """accel_en: the vehicle's mean horizontal acceleration (east, north) since the last fix
         (guard.core.monitor), what a late fix's velocity lags by (latency_spread). held: its course was
-        held by the receiver (held_course), its direction unknown."""
+        held by the receiver (held_course), its direction unknown: its speed is measured along the
+        filter's own track (held_speed)."""
         hx, H = gnss_velocity_model(x)
         lag = self.latency_spread(accel_en, ground)
+        if held:
+            along = self.held_speed(fix, hx, H)
+            if along is not None:
+                z, H, R = along
+                return Aid(z, hx, H, R + np.outer(lag, lag))
         R = np.eye(2) * self.sigma_vel(fix, held) ** 2 + np.outer(lag, lag)
         return Aid(np.array([fix.vel_e_mps, fix.vel_n_mps]), hx, H, R)
+
+    def held_speed(self, fix: GnssFix, hx: np.ndarray, H: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """A held fix's speed |v|, the one thing in it measured, as a measurement of the filter's own
+        speed |h(x)|: put in the east-north frame along the filter's track u = h(x) / |h(x)|, so that
+        z - h(x) = (|v| - |h(x)|) u and H becomes u u^T H (the speed's Jacobian, along u). Across the
+        track nothing is measured (z - h(x) is 0 there, H too), and R keeps the held fix's widened
+        variance there, so that each axis's test sees the variance it saw before; along it, the
+        receiver's own. The held course's error, the same fix after fix, is then no longer in the
+        innovation. None where the filter's own speed is within HELD_NOISE times the velocity's noise
+        (its track no surer than the held course): the widened vector as it reads."""
+        sigma = self.sigma_vel(fix)
+        speed = float(np.hypot(*hx))
+        if speed <= HELD_NOISE * sigma:
+            return None
+        u = hx / speed
+        along = np.outer(u, u)
+        across = np.eye(2) - along
+        z = math.hypot(fix.vel_e_mps, fix.vel_n_mps) * u
+        R = sigma ** 2 * along + self.sigma_vel(fix, held=True) ** 2 * across
+        return z, along @ H, R
 
     def latency_sigma(self, ground: bool) -> float:
         """sigma_L, s: how far the receiver's latency is unknown on this vehicle (0: off)."""
