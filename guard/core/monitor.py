@@ -318,7 +318,7 @@ class Monitor:
         if delayed:                 # the position's correction, carried to the state the velocity is tested on
             xd = xd + state_minus(ekf.x, before)
         if self.cfg.filter.use_gnss_velocity and fix.vel_n_mps is not None:
-            aid = self.gnss_aid.velocity(fix, xd, accel, bool(self.ground), self._held)
+            aid = self.gnss_aid.velocity(fix, xd, accel, bool(self.ground), self._held, ekf.P)
             self.witnesses.add_course(fix, xd, ekf.P[TH, TH], self.ground, across_track(aid.R, fix), self._held)
             events += self._measure(Sensor.GNSS_VEL, fix.t_us, aid, modelled=not self._held)
         self._probe(fix)

@@ -66,7 +66,7 @@ def test_a_course_repeated_to_the_last_digit_at_low_speed_is_held():
     assert not aid.held_course(along(fast + 0.2))       # at speed a repeat is tested as it reads
 
 
-def test_a_held_course_widens_the_velocity_by_twice_its_speed_and_nothing_else():
+def test_a_held_course_widens_the_velocity_by_twice_its_speed_where_the_filter_has_no_track():
     aid = GnssAiding(FilterConfig())
     x = np.zeros(14)
     f = fix(0.6, 0.8)
@@ -204,22 +204,25 @@ def test_the_turns_weigh_each_course_by_its_own_noise():
     assert abs(noisy) == pytest.approx(abs(quiet) / 9.0, rel=0.01)
 
 
-def test_a_held_fix_measures_its_speed_along_the_filters_track():
+def test_a_held_fix_measures_its_speed_along_the_filters_track_where_that_track_is_sure():
     """Its speed is the one thing a held fix measured: z - h(x) lies along the filter's own track,
-    H is the speed's Jacobian there, R the receiver's own noise along it and the held widening across."""
+    H is the speed's Jacobian there, R the receiver's own noise along it and the held widening across.
+    Where the filter's track is not sure (its speed near the noise, its direction uncertain), the
+    widened vector as it reads."""
     aid = GnssAiding(FilterConfig())
     x = np.zeros(14)
-    x[VX] = 2.0                                     # the filter: 2 m/s along its heading (east, at 0)
+    x[VX] = 2.0                                         # the filter: 2 m/s along its heading (east, at 0)
+    sure = np.eye(14) * 1e-4
     f = fix(0.0, 2.5)                                   # the receiver: 2.5 m/s, its course held north
-    held = aid.velocity(f, x, None, True, held=True)
-    r = held.z - held.hx
-    assert r == pytest.approx([0.5, 0.0])               # the speed's difference, along the track (east)
+    held = aid.velocity(f, x, None, True, held=True, P=sure)
+    assert held.z - held.hx == pytest.approx([0.5, 0.0])   # the speed's difference, along the track (east)
     assert held.H[1] == pytest.approx(np.zeros(14))     # nothing measured across it
-    sigma = aid.sigma_vel(f)
-    assert held.R == pytest.approx(np.diag([sigma ** 2, aid.sigma_vel(f, held=True) ** 2]))
-    x[VX] = 0.1                                     # the filter's own track no surer than the course
-    slow = aid.velocity(f, x, None, True, held=True)
-    assert slow.z == pytest.approx([0.0, 2.5]) and slow.R == pytest.approx(np.eye(2) * aid.sigma_vel(f, True) ** 2)
+    assert held.R == pytest.approx(np.diag([aid.sigma_vel(f) ** 2, aid.sigma_vel(f, held=True) ** 2]))
+    widened = np.eye(2) * aid.sigma_vel(f, held=True) ** 2
+    for speed, P in ((0.3, sure), (2.0, None), (2.0, np.eye(14) * 0.5)):     # near the noise; no P; the
+        x[VX] = speed                                                       # track unsure (0.35 rad)
+        plain = aid.velocity(f, x, None, True, held=True, P=P)
+        assert plain.z == pytest.approx([0.0, 2.5]) and plain.R == pytest.approx(widened), (speed, P)
 
 
 @pytest.mark.parametrize("vehicle", ["ground", "air"])
@@ -242,5 +245,5 @@ def test_a_course_held_up_to_three_metres_a_second_through_every_turn_raises_no_
         report = replay(logs[-1], config)
         assert report["alarms"] == [], report["alarms"][:3]
         assert report["skipped"]["gnss_course_held"] > 1000
-    monkeypatch.setattr(GnssAiding, "held_speed", lambda self, fix, hx, H: None)
+    monkeypatch.setattr(GnssAiding, "held_speed", lambda self, fix, hx, H, P: None)
     assert any(replay(log, config)["alarms"] for log in logs)

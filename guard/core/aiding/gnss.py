@@ -2,9 +2,10 @@
 
     position  z = (e, n) of the fix in the local frame,  h(x) = (x, y),  H = H_POS
     velocity  z = (v_e, v_n),  h(x) = R(theta) (v_x, v_y),  H its Jacobian (gnss_velocity_model)
-R is diagonal (but for the latency's part below, when set), from the receiver's own accuracy figures where it
-sends them (as EKF2 does), bounded below by the configured floors and above by ACC_CAP times them (a
-receiver, or a spoofer, that claims a huge error would otherwise blind every test):
+R is diagonal (but for the latency's part below, when set, and a held course's), from the receiver's own
+accuracy figures where it sends them (as EKF2 does), bounded below by the configured floors and above by
+ACC_CAP times them (a receiver, or a spoofer, that claims a huge error would otherwise blind every
+test):
     position  sigma = max(gnss_pos_sigma_m, gnss_pos_acc_fraction * h_acc): h_acc counts the slow,
               correlated error too, which the filter follows (q_pos_m); the innovation sees the
               epoch-to-epoch part, about 0.4 of it on u-blox receivers
@@ -14,14 +15,14 @@ unit of the fix's HDOP where it gives one (an older receiver reports its geometr
 at HDOP 1, 0.5 m; the Erle PXF's receivers flew at HDOP 1.3 to 2, their position wandering against
 their own velocity by a metre), else gnss_pos_unreported_m (real receivers' levels, as EKF3's
 defaults, not the simulator's).
-A receiver holds its course over ground where the vehicle moves too slowly for a course to mean anything,
-and reports its speed along the last course it had (HELD_COURSE_MAX_MPS): a fix whose course repeats the
-last one's to the last digit, that slowly but faster than its noise (HELD_NOISE), has its velocity's
-direction taken as unknown: its speed, which the receiver did measure, is tested and fused along the
-filter's own track, and across it nothing is (held_speed); where the filter's own speed is too small to
-give a track, the fix's vector is taken with R widened by (2 |v|)^2 on both axes (a held course is off
-by up to the angle turned since, as far as twice the speed), and so is the velocity a re-anchoring on
-that fix takes.
+A receiver holds its course over ground where the vehicle moves too slowly for a course to mean
+anything, and reports its speed along the last course it had (HELD_COURSE_MAX_MPS): a fix whose course
+repeats the last one's to the last digit, that slowly but faster than its noise (HELD_NOISE), has its
+velocity's direction taken as unknown: its speed, which the receiver did measure, is tested and fused
+along the filter's own track, and across it nothing is (held_speed); where the filter's own track is not
+sure (its speed too near the noise, its direction too uncertain), the fix's vector is taken with R
+widened by (2 |v|)^2 on both axes (a held course is off by up to the angle turned since, as far as twice
+the speed), and so is the velocity a re-anchoring on that fix takes.
 The velocity's R can also hold the receiver's latency, as far as it is unknown (latency_spread, off
 by default): on the 47 real flights of the README the GNSS velocity innovations grow with the
 acceleration, more along it than across it, as a fix 0.05 to 0.35 s late would make them on the
@@ -73,6 +74,12 @@ HELD_COURSE_MAX_MPS = 3.0
 # for. Above it a held course can stand across a turn. (Widened down to standing still, the real logs'
 # hovering copters caught fewer 0.3 m/s position ramps, which their velocity gave away: README.)
 HELD_NOISE = 2.0
+# A held fix's speed is measured along the filter's own track (GnssAiding.held_speed) only where that track
+# is sure: the filter's speed over this many times the velocity's noise (a reported speed just over the held
+# rule's floor is biased up by it: +0.9 sigma at 2 sigma, +0.1 at 5) ...
+HELD_SPEED_NOISE = 4.0
+# ... and its direction known to within this (P's velocity across the track over the speed; 14 degrees)
+HELD_TRACK_RAD = 0.25
 # A course repeated "to the last digit": the course comes as an angle (GPS_RAW_INT's cdeg, DataFlash's
 # degrees) and the speed apart, and the velocity built from them gives the same angle back to a few 1e-16
 # rad, or 1e-9 where a source carries it as float32 components (a ULog's or DroneCAN's, of a receiver that
@@ -167,40 +174,48 @@ class GnssAiding:
                 and HELD_NOISE * self.sigma_vel(fix) < speed < HELD_COURSE_MAX_MPS)
 
     def velocity(self, fix: GnssFix, x: np.ndarray, accel_en: np.ndarray | None, ground: bool,
-                 held: bool = False) -> Aid:
+                 held: bool = False, P: np.ndarray | None = None) -> Aid:
         """accel_en: the vehicle's mean horizontal acceleration (east, north) since the last fix
         (guard.core.monitor), what a late fix's velocity lags by (latency_spread). held: its course was
         held by the receiver (held_course), its direction unknown: its speed is measured along the
-        filter's own track (held_speed)."""
+        filter's own track where P says that track is sure (held_speed)."""
         hx, H = gnss_velocity_model(x)
         lag = self.latency_spread(accel_en, ground)
         if held:
-            along = self.held_speed(fix, hx, H)
+            along = self.held_speed(fix, hx, H, P)
             if along is not None:
                 z, H, R = along
                 return Aid(z, hx, H, R + np.outer(lag, lag))
         R = np.eye(2) * self.sigma_vel(fix, held) ** 2 + np.outer(lag, lag)
         return Aid(np.array([fix.vel_e_mps, fix.vel_n_mps]), hx, H, R)
 
-    def held_speed(self, fix: GnssFix, hx: np.ndarray, H: np.ndarray
+    def held_speed(self, fix: GnssFix, hx: np.ndarray, H: np.ndarray, P: np.ndarray | None
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """A held fix's speed |v|, the one thing in it measured, as a measurement of the filter's own
         speed |h(x)|: put in the east-north frame along the filter's track u = h(x) / |h(x)|, so that
         z - h(x) = (|v| - |h(x)|) u and H becomes u u^T H (the speed's Jacobian, along u). Across the
-        track nothing is measured (z - h(x) is 0 there, H too), and R keeps the held fix's widened
-        variance there, so that each axis's test sees the variance it saw before; along it, the
-        receiver's own. The held course's error, the same fix after fix, is then no longer in the
-        innovation. None where the filter's own speed is within HELD_NOISE times the velocity's noise
-        (its track no surer than the held course): the widened vector as it reads."""
+        track nothing is measured (z - h(x) is 0 there, H too) and R keeps the held fix's widened
+        variance; along it, the receiver's own. The held course's error, the same fix after fix, is
+        then no longer in the innovation. The detector tests east and north apart, each against its
+        diagonal of S, which holds the widening wherever the track is off the axes: the speed is tested
+        no more sharply than the widened vector was, only without the course's error.
+        None (the widened vector as it reads) unless the filter's own track is sure: its speed over
+        HELD_SPEED_NOISE times the velocity's noise (a speed that near the noise is biased up by the
+        held rule's own floor, and its direction is the noise's) and its direction known to within
+        HELD_TRACK_RAD (P's velocity across the track over the speed: after a re-anchoring, or on GNSS
+        alone through a turn, the filter's track may be as stale as the held course)."""
         sigma = self.sigma_vel(fix)
         speed = float(np.hypot(*hx))
-        if speed <= HELD_NOISE * sigma:
+        if P is None or speed <= HELD_SPEED_NOISE * sigma:
             return None
         u = hx / speed
+        w = np.array([-u[1], u[0]])
+        hw = w @ H
+        if math.sqrt(max(float(hw @ P @ hw), 0.0)) > HELD_TRACK_RAD * speed:
+            return None
         along = np.outer(u, u)
-        across = np.eye(2) - along
         z = math.hypot(fix.vel_e_mps, fix.vel_n_mps) * u
-        R = sigma ** 2 * along + self.sigma_vel(fix, held=True) ** 2 * across
+        R = sigma ** 2 * along + self.sigma_vel(fix, held=True) ** 2 * np.outer(w, w)
         return z, along @ H, R
 
     def latency_sigma(self, ground: bool) -> float:
