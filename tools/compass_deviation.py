@@ -30,11 +30,8 @@ an IMU fast enough to integrate, or one that cannot be read, is named and skippe
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import sys
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -46,7 +43,7 @@ from guard.core.aiding.tilt import Tilt              # noqa: E402
 from guard.errors import GuardError                  # noqa: E402
 from guard.model.samples import Attitude, ImuSample  # noqa: E402
 from guard.runtime.replay import replay              # noqa: E402
-from real_logs import logs_in                        # noqa: E402 (beside this file)
+from real_logs import each_log                       # noqa: E402 (beside this file)
 
 GAP_S = 0.5             # a stretch ends at a gap in the IMU this long (or a clock that goes back)
 MIN_STRETCH_S = 10.0    # shorter stretches are left out
@@ -206,34 +203,26 @@ def deviation_of(path: str) -> dict:
     return {"log": path, **asdict(f), "max_deviation_deg": f.max_deviation_deg, "shown": f.shown}
 
 
+def show(r: dict) -> None:
+    name = Path(r["log"]).name
+    if "error" in r:
+        print(f"{name}: skipped: {r['error']}")
+        return
+    if "why" in r:
+        print(f"{name}: not shown: {r['why']}")
+        return
+    what = (f"up to {r['max_deviation_deg']:.0f} degrees by heading" if r["shown"]
+            else "not shown by its turns")
+    print(f"{name}: {what}: hard iron {r['dx']:+.3f} forward, {r['dy']:+.3f} right of the "
+          f"horizontal field (+-{r['sigma']:.3f}); the compass against the gyro "
+          f"{r['scatter_deg']:.1f} degrees with it, {r['scatter_without_deg']:.1f} without; "
+          f"headings over {r['covered_deg']:.0f} degrees")
+
+
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("logs", nargs="+", help="folders of logs, or single logs")
-    ap.add_argument("--jobs", type=int, default=2)
-    ap.add_argument("--json", help="write every log's result here")
-    args = ap.parse_args(argv)
-    try:
-        logs = logs_in(args.logs)
-    except GuardError as e:
-        print(f"guard: {e}", file=sys.stderr)
-        return 2
-    results = []
-    with ProcessPoolExecutor(max(1, args.jobs)) as ex:
-        for r in ex.map(deviation_of, logs):
-            results.append(r)
-            name = Path(r["log"]).name
-            if "error" in r:
-                print(f"{name}: skipped: {r['error']}")
-                continue
-            if "why" in r:
-                print(f"{name}: not shown: {r['why']}")
-                continue
-            what = (f"up to {r['max_deviation_deg']:.0f} degrees by heading" if r["shown"]
-                    else "not shown by its turns")
-            print(f"{name}: {what}: hard iron {r['dx']:+.3f} forward, {r['dy']:+.3f} right of the "
-                  f"horizontal field (+-{r['sigma']:.3f}); the compass against the gyro "
-                  f"{r['scatter_deg']:.1f} degrees with it, {r['scatter_without_deg']:.1f} without; "
-                  f"headings over {r['covered_deg']:.0f} degrees")
+    results = each_log(__doc__, deviation_of, show, argv)
+    if isinstance(results, int):
+        return results
     shown = [r for r in results if r.get("shown")]
     if shown:
         devs = sorted(r["max_deviation_deg"] for r in shown)
@@ -241,8 +230,6 @@ def main(argv=None) -> int:
               f"{devs[-1]:.0f} degrees")
     else:
         print(f"{len(results)} logs: the iron shown in none")
-    if args.json:
-        Path(args.json).write_text(json.dumps(results, indent=1))
     return 0
 
 

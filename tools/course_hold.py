@@ -17,11 +17,8 @@ its fixes after the reboot as a stretch of their own.
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import sys
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -32,7 +29,7 @@ from guard.core.geo import LocalFrame                # noqa: E402
 from guard.errors import GuardError                  # noqa: E402
 from guard.model.samples import GnssFix              # noqa: E402
 from guard.runtime.replay import replay              # noqa: E402
-from real_logs import logs_in                        # noqa: E402 (beside this file)
+from real_logs import each_log                       # noqa: E402 (beside this file)
 
 BINS = (0.0, 0.3, 0.5, 1.0, 2.0, 3.0, 5.0, 8.0, math.inf)     # speed bins (m/s)
 SPAN_S = 1.0            # the track's velocity: the positions at least this long before and after
@@ -119,23 +116,11 @@ def line(r: dict) -> str:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("logs", nargs="+", help="folders of logs, or single logs")
-    ap.add_argument("--jobs", type=int, default=2)
-    ap.add_argument("--json", help="write every log's result here")
-    args = ap.parse_args(argv)
-    try:
-        logs = logs_in(args.logs)
-    except GuardError as e:
-        print(f"guard: {e}", file=sys.stderr)
-        return 2
-    results = []
-    with ProcessPoolExecutor(max(1, args.jobs)) as ex:
-        for r in ex.map(course_of, logs):
-            results.append(r)
-            print(f"{Path(r['log']).name}: skipped: {r['error']}" if "error" in r else line(r))
-    if args.json:
-        Path(args.json).write_text(json.dumps(results, indent=1))
+    def show(r: dict) -> None:
+        print(f"{Path(r['log']).name}: skipped: {r['error']}" if "error" in r else line(r))
+    results = each_log(__doc__, course_of, show, argv)
+    if isinstance(results, int):
+        return results
     return 0 if any("error" not in r for r in results) else 1
 
 

@@ -65,6 +65,31 @@ def logs_in(paths: list[str]) -> list[str]:
     return logs
 
 
+def each_log(doc: str, measure, show, argv=None) -> list[dict] | int:
+    """The command line of a tool that measures each log on its own (course_hold, compass_deviation):
+    LOGS (folders or files), --jobs, --json. Each log's result dict (with "log", or "error" where it
+    could not be read) is shown as it comes, and all of them written to --json; a folder or file that
+    is not there is said and 2 returned instead."""
+    ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("logs", nargs="+", help="folders of logs, or single logs")
+    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--json", help="write every log's result here")
+    args = ap.parse_args(argv)
+    try:
+        logs = logs_in(args.logs)
+    except GuardError as e:
+        print(f"guard: {e}", file=sys.stderr)
+        return 2
+    results = []
+    with ProcessPoolExecutor(max(1, args.jobs)) as ex:
+        for r in ex.map(measure, logs):
+            results.append(r)
+            show(r)
+    if args.json:
+        Path(args.json).write_text(json.dumps(results, indent=1))
+    return results
+
+
 def config_of(path: str | None, sets: tuple[str, ...]):
     """The config file's keys (none: the defaults), then each "section.key=TOML value" over them."""
     table: dict = read(path)[0] if path else {}
