@@ -15,6 +15,7 @@ import math
 
 import numpy as np
 
+from guard.core.aiding.imu import lateral_rows
 from guard.model.events import Notice
 from guard.model.sensors import Sensor
 
@@ -34,11 +35,10 @@ class ModelFit:
 
     def add(self, sensor: Sensor, t_us: int, r: np.ndarray, S: np.ndarray) -> None:
         """One fused innovation (python floats: this runs at every fusion)."""
-        if sensor == Sensor.ACCEL and len(r) == 3:
-            self._add(sensor, t_us, r[:2], S[:2, :2])
-            self._add(LATERAL, t_us, r[2:], S[2:, 2:])
-        else:
-            self._add(sensor, t_us, r, S)
+        own, lateral = lateral_rows(sensor, len(r))
+        self._add(sensor, t_us, r[own], S[own, own])
+        if lateral is not None:
+            self._add(LATERAL, t_us, r[lateral], S[lateral, lateral])
 
     def _add(self, sensor: str, t_us: int, r: np.ndarray, S: np.ndarray) -> None:
         z2 = 0.0

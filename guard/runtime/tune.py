@@ -46,6 +46,7 @@ from pathlib import Path
 import tomli_w
 
 from guard.config import Config, table
+from guard.core.aiding.imu import lateral_rows
 from guard.core.ekf import BM, KS, LA, FilterConfig
 from guard.core.longrun import BLOCK, F_MAX, BlockMeans, normalised
 from guard.errors import GuardError
@@ -75,9 +76,8 @@ KEYS: dict[str, tuple[str, ...]] = {
 def parts(sensor: Sensor, z) -> list[tuple[str, object]]:
     """A tested innovation's channels by the keys that scale them: a ground vehicle's accelerometer
     test holds the sideways constraint's too, whose noise is its own (`lateral_sigma_mps`)."""
-    if sensor == Sensor.ACCEL and len(z) == 3:
-        return [(Sensor.ACCEL, z[:2]), (LATERAL, z[2:])]
-    return [(sensor, z)]
+    own, lateral = lateral_rows(sensor, len(z))
+    return [(sensor, z[own])] + ([(LATERAL, z[lateral])] if lateral is not None else [])
 
 
 def tested_by(key: str) -> Sensor:

@@ -48,6 +48,15 @@ IMU_BLOCKS = ((Sensor.MAG, 0, 1), (Sensor.GYRO, 1, 2), (Sensor.ACCEL, 2, 4))
 IMU_BLOCKS_NO_MAG = ((Sensor.GYRO, 0, 1), (Sensor.ACCEL, 1, 3))
 
 
+def lateral_rows(sensor: Sensor, n: int) -> tuple[slice, slice | None]:
+    """A tested innovation's rows by the noise that scales them: the sensor's own, and on wheels the
+    sideways constraint's, which the accelerometer's test (n = 3) holds too, its noise its own
+    (`lateral_sigma_mps`); None where there is none."""
+    if sensor == Sensor.ACCEL and n == 3:
+        return slice(0, 2), slice(2, 3)
+    return slice(0, n), None
+
+
 @functools.cache
 def row_sensors(blocks: tuple[tuple[Sensor, int, int], ...], ground: bool) -> tuple[Sensor | None, ...]:
     """The sensor of each row of a stacked measurement (None: the ground's constraint, the last)."""
