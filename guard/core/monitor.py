@@ -559,7 +559,7 @@ class Monitor:
     # -- testing and fusing -----------------------------------------------------------------------
     def _measure(self, sensor: Sensor, t_us: int, aid: Aid, modelled: bool = True) -> list[Event]:
         r, S, PHT = self.ekf.innovation(aid.z, aid.hx, aid.H, aid.R)
-        events, fused = self._test(sensor, t_us, r, S, modelled)
+        events, fused = self._test(sensor, t_us, r, aid.tested(S), modelled)
         if fused:
             self.ekf.fuse(r, S, aid.H, aid.R, PHT)
         return events

@@ -13,9 +13,10 @@ import numpy as np
 import pytest
 
 import guard.core.aiding.gnss as gnss
+from guard.core.aiding import Aid
 from guard.config import parse
 from guard.core.aiding.gnss import HELD_COURSE_MAX_MPS, GnssAiding
-from guard.core.ekf import VX, FilterConfig
+from guard.core.ekf import TH, VX, FilterConfig
 from guard.model.samples import GnssFix
 from guard.runtime.replay import replay
 from guard_sim import scenario
@@ -218,11 +219,34 @@ def test_a_held_fix_measures_its_speed_along_the_filters_track_where_that_track_
     assert held.z - held.hx == pytest.approx([0.5, 0.0])   # the speed's difference, along the track (east)
     assert held.H[1] == pytest.approx(np.zeros(14))     # nothing measured across it
     assert held.R == pytest.approx(np.diag([aid.sigma_vel(f) ** 2, aid.sigma_vel(f, held=True) ** 2]))
+    assert held.axis == pytest.approx([1.0, 0.0])        # tested along the track
     widened = np.eye(2) * aid.sigma_vel(f, held=True) ** 2
     for speed, P in ((0.3, sure), (2.0, None), (2.0, np.eye(14) * 0.5)):     # near the noise; no P; the
         x[VX] = speed                                                       # track unsure (0.35 rad)
         plain = aid.velocity(f, x, None, True, held=True, P=P)
         assert plain.z == pytest.approx([0.0, 2.5]) and plain.R == pytest.approx(widened), (speed, P)
+        assert plain.axis is None
+
+
+def test_a_held_speed_on_a_diagonal_track_is_tested_against_its_own_variance_not_the_widening():
+    """On a track off the axes each channel's diagonal of S holds the across-track widening (twice the
+    speed): a speed 4 sigma off read about 0.2 sigma on either. Tested along the track (Aid.axis), each
+    channel reads the speed's innovation times the track's share on its axis."""
+    aid = GnssAiding(FilterConfig())
+    c = math.radians(36.87)                             # the track: 3 east, 4 north
+    x = np.zeros(14)
+    x[VX] = 1.0                                         # the filter: 1 m/s along its heading ...
+    x[TH] = math.pi / 2 - c                             # ... which points along the track (ENU, from east)
+    f = fix(1.4 * math.sin(c), 1.4 * math.cos(c))       # the receiver: 0.4 m/s faster, its course held
+    held = aid.velocity(f, x, None, True, held=True, P=np.eye(14) * 1e-6)
+    S = held.H @ (np.eye(14) * 1e-6) @ held.H.T + held.R
+    r = held.z - held.hx
+    sigma = aid.sigma_vel(f)
+    assert np.all(np.abs(r) / np.sqrt(np.diagonal(S)) < 0.25)     # against the diagonal: the widening's
+    z = np.abs(r) / np.sqrt(np.diagonal(held.tested(S)))
+    assert z == pytest.approx(np.array([0.6, 0.8]) * 0.4 / sigma, rel=0.01)
+    plain = aid.velocity(f, x, None, True)
+    assert plain.tested(S) is S                         # a measured vector: S as it is
 
 
 @pytest.mark.parametrize("vehicle", ["ground", "air"])
@@ -247,3 +271,32 @@ def test_a_course_held_up_to_three_metres_a_second_through_every_turn_raises_no_
         assert report["skipped"]["gnss_course_held"] > 1000
     monkeypatch.setattr(GnssAiding, "held_speed", lambda self, fix, hx, H, P: None)
     assert any(replay(log, config)["alarms"] for log in logs)
+
+
+def test_a_speed_step_while_the_course_is_held_on_a_diagonal_track_is_caught_by_the_velocity(tmp_path, monkeypatch):
+    """The route's second leg (north-east, 37 degrees off north) at 1 m/s, the receiver holding its course
+    below 3 m/s: a 0.5 m/s step into the velocity's north (the course held, its speed 1.4 m/s) is caught
+    on the GNSS velocity within 0.5 s in at least 3 of 4 seeds (the rest by the position, seconds later,
+    once the filter has taken part of it in). The control, each channel tested against its own diagonal
+    of S, which holds the across-track widening: never by the velocity within 0.5 s."""
+    onset_s = 85.0
+    config = parse({"monitor": {"vehicle": "ground"}})
+    quick = {"axis": 0, "diagonal": 0}
+    for seed in (1, 2, 3, 4):
+        sc = scenario.load("clean")
+        route = dataclasses.replace(sc.route, waypoints_m=tuple((p[0], p[1], v)
+                                                                for p, v in zip(sc.route.waypoints_m, SLOW)))
+        sc = dataclasses.replace(sc, duration_s=95.0, route=route,
+                                 attacks=(Attack("step", "gnss_vel", "north", 0.5, onset_s),),
+                                 noise=dataclasses.replace(sc.noise, gnss_course_hold_mps=3.0))
+        log = str(tmp_path / f"speed-{seed}.tlog")
+        truth = run(sc, seed, tlog=log)
+        k0 = truth["attacks"][0]["start_gnss_index"]
+        for name in quick:
+            with monkeypatch.context() as m:
+                if name == "diagonal":
+                    m.setattr(Aid, "tested", lambda self, S: S)
+                alarms = replay(log, config)["alarms"]
+            assert all(a["gnss_index"] >= k0 for a in alarms), (seed, name, alarms[:3])
+            quick[name] += any(a["sensor"] == "gnss_vel" and a["gnss_index"] - k0 <= 5 for a in alarms)
+    assert quick["axis"] >= 3 and quick["diagonal"] == 0, quick

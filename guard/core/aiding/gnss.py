@@ -19,7 +19,8 @@ A receiver holds its course over ground where the vehicle moves too slowly for a
 anything, and reports its speed along the last course it had (HELD_COURSE_MAX_MPS): a fix whose course
 repeats the last one's to the last digit, that slowly but faster than its noise (HELD_NOISE), has its
 velocity's direction taken as unknown: its speed, which the receiver did measure, is tested and fused
-along the filter's own track, and across it nothing is (held_speed); where the filter's own track is not
+along the filter's own track, each channel against the variance along it, and across it nothing is
+(held_speed); where the filter's own track is not
 sure (its speed too near the noise, its direction too uncertain), the fix's vector is taken with R
 widened by (2 |v|)^2 on both axes (a held course is off by up to the angle turned since, as far as twice
 the speed), and so is the velocity a re-anchoring on that fix takes.
@@ -184,21 +185,23 @@ class GnssAiding:
         if held:
             along = self.held_speed(fix, hx, H, P)
             if along is not None:
-                z, H, R = along
-                return Aid(z, hx, H, R + np.outer(lag, lag))
+                z, H, R, u = along
+                return Aid(z, hx, H, R + np.outer(lag, lag), axis=u)
         R = np.eye(2) * self.sigma_vel(fix, held) ** 2 + np.outer(lag, lag)
         return Aid(np.array([fix.vel_e_mps, fix.vel_n_mps]), hx, H, R)
 
     def held_speed(self, fix: GnssFix, hx: np.ndarray, H: np.ndarray, P: np.ndarray | None
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
         """A held fix's speed |v|, the one thing in it measured, as a measurement of the filter's own
         speed |h(x)|: put in the east-north frame along the filter's track u = h(x) / |h(x)|, so that
         z - h(x) = (|v| - |h(x)|) u and H becomes u u^T H (the speed's Jacobian, along u). Across the
         track nothing is measured (z - h(x) is 0 there, H too) and R keeps the held fix's widened
         variance; along it, the receiver's own. The held course's error, the same fix after fix, is
-        then no longer in the innovation. The detector tests east and north apart, each against its
-        diagonal of S, which holds the widening wherever the track is off the axes: the speed is tested
-        no more sharply than the widened vector was, only without the course's error.
+        then no longer in the innovation. Returned with z, H and R: u, the axis the speed is tested
+        along (Aid.axis): the detector tests east and north apart, and each channel's diagonal of S
+        would hold the across-track widening wherever the track is off the axes (on a diagonal track a
+        speed off by 4 sigma read 0.2 sigma on either); against S along u, each channel reads the
+        speed's innovation times the track's share on its axis.
         None (the widened vector as it reads) unless the filter's own track is sure: its speed over
         HELD_SPEED_NOISE times the velocity's noise (a speed that near the noise is biased up by the
         held rule's own floor, and its direction is the noise's) and its direction known to within
@@ -216,7 +219,7 @@ class GnssAiding:
         along = np.outer(u, u)
         z = math.hypot(fix.vel_e_mps, fix.vel_n_mps) * u
         R = sigma ** 2 * along + self.sigma_vel(fix, held=True) ** 2 * np.outer(w, w)
-        return z, along @ H, R
+        return z, along @ H, R, u
 
     def latency_sigma(self, ground: bool) -> float:
         """sigma_L, s: how far the receiver's latency is unknown on this vehicle (0: off)."""
