@@ -424,6 +424,8 @@ class Monitor:
         if self.inertial is False:
             self.ekf.hold_heading()
         self.t_us = fix.t_us
+        if f.use_gnss_velocity and fix.vel_n_mps is not None:
+            self.gnss_aid.held_course(fix)      # the first fix's course, which the next may repeat
         return [Notice(fix.t_us, "info", f"filter initialised at {fix.lat_deg:.6f}, {fix.lon_deg:.6f}")]
 
     # -- IMU ------------------------------------------------------------------------------------

@@ -86,7 +86,8 @@ def vehicle(seed: int) -> dict:
     scale errors up to 3 % and mounted up to 3 degrees off; on wheels that slip (0 to 0.015 rad per m/s^2
     of lateral acceleration, a car's 0.005 to 0.01 within) and steer as a car does, the yaw acceleration
     moving at 1 to 4 rad/s^3 (sim/vehicle.py), the IMU and antenna 0.5 m behind to 1.5 m ahead of the
-    axle that does not slide. Drawn from the seed alone."""
+    axle that does not slide; half of them with a receiver that holds its course below 0.3 to 2.5 m/s.
+    Drawn from the seed alone."""
     rng = random.Random(f"vehicle-{seed}")
     vel = rng.uniform(0.05, 0.3)
     return {"mag_offset_deg": rng.choice((-1, 1)) * rng.uniform(0.0, 5.0), "gnss_vel_white_mps": vel,
@@ -96,8 +97,13 @@ def vehicle(seed: int) -> dict:
             "imu_yaw_mount_deg": rng.uniform(-3.0, 3.0),
             # drawn after the sensors, which stay what they were for every seed before the wheels slipped
             "sideslip_rad_per_mps2": rng.uniform(0.0, 0.015), "max_yaw_jerk_radps3": rng.uniform(1.0, 4.0),
-            # drawn last: every vehicle is otherwise the one it was before its sensors had a place
-            "sensors_ahead_m": rng.uniform(-0.5, 1.5)}
+            # drawn after the sensors, the slip and the steering: the vehicle is otherwise the one it was
+            # before its sensors had a place
+            "sensors_ahead_m": rng.uniform(-0.5, 1.5),
+            # drawn last: the receiver of half the vehicles holds its course while they are slower than
+            # 0.3 to 2.5 m/s (real receivers' low-speed rule; on this route, which runs at 3 to 7 m/s, as
+            # they move off from rest, their first course their noise's)
+            "gnss_course_hold_mps": rng.uniform(0.3, 2.5) if rng.random() < 0.5 else 0.0}
 
 
 def sim_seed(family: str, attacks: tuple, seed: int) -> int:
