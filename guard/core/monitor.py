@@ -121,6 +121,7 @@ class Monitor:
         self._fix_en: tuple[float, float] | None = None
         self.drift = Drift()                        # the IMU's open-loop drift, measured in flight (the vehicle's)
         self._held_said = False                     # the receiver holds its course at low speed: said once
+        self._usual_said = False                    # a receiver poorer than the fixed bound all along: likewise
         self._reset()
 
     def _reset(self) -> None:
@@ -287,6 +288,13 @@ class Monitor:
                     events.append(Notice(fix.t_us, "info", f"GNSS fix good to {coarse} only: monitoring starts "
                                          f"once the receiver reports {START_H_ACC_M:g} m or HDOP {START_HDOP:g}"))
                 return events
+        # what the receiver usually says of itself (guard.core.aiding.receiver), heard while no test stirs;
+        # a new filter's first fix is tested by nothing
+        self.gnss_aid.level.hear(fix, self.ekf is None or (self.judge.calm and not self.health.excluded))
+        if not self._usual_said and self.gnss_aid.poor_as_usual():
+            self._usual_said = True
+            events.append(Notice(fix.t_us, "warning", self.gnss_aid.poor_as_usual()))
+        if self.ekf is None:
             return events + self._initialise(fix)
         events += self._kind_unsaid(fix.t_us)
         poor = None if self._cap_said else self.gnss_aid.beyond_cap(fix)

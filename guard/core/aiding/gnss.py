@@ -5,7 +5,8 @@
 R is diagonal (but for the latency's part below, when set, and a held course's), from the receiver's own
 accuracy figures where it sends them (as EKF2 does), bounded below by the configured floors and above by
 ACC_CAP times them (a receiver, or a spoofer, that claims a huge error would otherwise blind every
-test):
+test), or by what this receiver usually reports where it is poorer than that all along
+(guard.core.aiding.receiver):
     position  sigma = max(gnss_pos_sigma_m, gnss_pos_acc_fraction * h_acc): h_acc counts the slow,
               correlated error too, which the filter follows (q_pos_m); the innovation sees the
               epoch-to-epoch part, about 0.4 of it on u-blox receivers
@@ -37,6 +38,7 @@ import math
 import numpy as np
 
 from guard.core.aiding import Aid
+from guard.core.aiding.receiver import LEVEL_WINDOW_S, ReceiverLevel, bound
 from guard.core.ekf import N_STATES, TH, VX, VY, X, Y, FilterConfig
 from guard.model.events import Alarm
 from guard.model.samples import GnssFix
@@ -95,22 +97,50 @@ class GnssAiding:
     def __init__(self, f: FilterConfig):
         self.f = f
         self._last_course: tuple | None = None     # the last fix's (course over ground rad from north, lat, lon)
+        self.level = ReceiverLevel()                # what the receiver usually says of itself: the monitor feeds it
+
+    def cap_pos(self) -> float:
+        """The largest position noise a fix's own figures are taken at, m (receiver.bound)."""
+        f, h = self.f, self.level.h_acc
+        return bound(f.gnss_pos_sigma_m, ACC_CAP * f.gnss_pos_sigma_m,
+                     None if h is None else f.gnss_pos_acc_fraction * h)
+
+    def cap_vel(self) -> float:
+        """The largest velocity noise a fix's own figure is taken at, m/s (receiver.bound)."""
+        f = self.f
+        return bound(f.gnss_vel_sigma_mps, ACC_CAP * f.gnss_vel_sigma_mps, self.level.vel_acc)
+
+    def poor_as_usual(self) -> str | None:
+        """What to say of a receiver whose usual figures take it past the fixed bound (ACC_CAP times the
+        floors): its tests are that much blunter (None: nothing to say). The monitor says it once."""
+        f, parts = self.f, []
+        if self.cap_vel() > ACC_CAP * f.gnss_vel_sigma_mps and f.use_gnss_velocity:
+            parts.append(f"its velocity good to {self.level.vel_acc:.2f} m/s")
+        if self.cap_pos() > ACC_CAP * f.gnss_pos_sigma_m:
+            parts.append(f"its position good to {self.level.h_acc:.1f} m")
+        if not parts:
+            return None
+        return (f"the receiver usually reports {' and '.join(parts)} (its median over up to "
+                f"{LEVEL_WINDOW_S:g} s of calm fixes): guard takes its word, so its GNSS tests are that much "
+                "blunter, and an attack on it must be that much larger to be seen (a receiver that claims "
+                "this all of a sudden is not believed)")
 
     def beyond_cap(self, fix: GnssFix) -> str | None:
         """What to say of a fix whose receiver calls itself worse than guard takes a receiver's word
-        for (ACC_CAP times the floors; its HDOP, for one that reports no accuracy): its tests then
-        assume the cap, and a receiver that poor may alarm where one that knows it is would not
-        (None: nothing to say). The monitor says it once per filter."""
+        for (cap_pos, cap_vel; its HDOP, for one that reports no accuracy): its tests then assume the
+        cap, and a receiver that poor may alarm where one that knows it is would not (None: nothing to
+        say). The monitor says it once per filter."""
         f, parts = self.f, []
-        cap_pos = ACC_CAP * f.gnss_pos_sigma_m
+        cap_pos = self.cap_pos()
         if fix.h_acc_m and f.gnss_pos_acc_fraction * fix.h_acc_m > cap_pos:
             parts.append(f"its position good to {fix.h_acc_m:.1f} m only (guard takes up to "
-                         f"{cap_pos / f.gnss_pos_acc_fraction:g} m)")
-        elif not fix.h_acc_m and fix.hdop and f.gnss_pos_unreported_m * fix.hdop > cap_pos:
-            parts.append(f"an HDOP of {fix.hdop:.1f} (guard takes up to {cap_pos / f.gnss_pos_unreported_m:g})")
-        if f.use_gnss_velocity and fix.vel_acc_mps and fix.vel_acc_mps > ACC_CAP * f.gnss_vel_sigma_mps:
+                         f"{cap_pos / f.gnss_pos_acc_fraction:.3g} m)")
+        elif not fix.h_acc_m and fix.hdop and f.gnss_pos_unreported_m * fix.hdop > ACC_CAP * f.gnss_pos_sigma_m:
+            parts.append(f"an HDOP of {fix.hdop:.1f} (guard takes up to "
+                         f"{ACC_CAP * f.gnss_pos_sigma_m / f.gnss_pos_unreported_m:g})")
+        if f.use_gnss_velocity and fix.vel_acc_mps and fix.vel_acc_mps > self.cap_vel():
             parts.append(f"its velocity good to {fix.vel_acc_mps:.2f} m/s only (guard takes up to "
-                         f"{ACC_CAP * f.gnss_vel_sigma_mps:g} m/s)")
+                         f"{self.cap_vel():.3g} m/s)")
         if not parts:
             return None
         return (f"the receiver reports {' and '.join(parts)}: guard tests it at those figures (a spoofer could "
@@ -122,7 +152,7 @@ class GnssAiding:
             if fix.hdop:            # no accuracy, but its geometry: gnss_pos_unreported_m per unit of HDOP
                 return min(max(f.gnss_pos_sigma_m, f.gnss_pos_unreported_m * fix.hdop), ACC_CAP * f.gnss_pos_sigma_m)
             return f.gnss_pos_unreported_m
-        return min(max(f.gnss_pos_sigma_m, f.gnss_pos_acc_fraction * fix.h_acc_m), ACC_CAP * f.gnss_pos_sigma_m)
+        return min(max(f.gnss_pos_sigma_m, f.gnss_pos_acc_fraction * fix.h_acc_m), self.cap_pos())
 
     def too_coarse_to_start(self, fix: GnssFix) -> str | None:
         """What the receiver says of a fix too coarse to start the filter on (None: good enough)."""
@@ -135,9 +165,14 @@ class GnssAiding:
     def q_pos(self, fix: GnssFix) -> float:
         """The position's random walk until this fix: q_pos_m, per unit of HDOP for a receiver read by
         its HDOP (its correlated error, ionosphere and multipath, grows with the geometry as its
-        noise does)."""
+        noise does), and likewise for one that reports its accuracy, per gnss_pos_unreported_m of the
+        fix's noise (what one unit of HDOP is taken for): h_acc counts the slow error too, and a
+        receiver that calls itself good to 8 m wanders by metres in seconds (a real PX4 copter's, with 7
+        to 11 satellites: 23 m in 18 s, its velocity saying 8). Up to h_acc 1.25 m, q_pos_m as it was."""
         f = self.f
-        if fix.h_acc_m or not fix.hdop:
+        if fix.h_acc_m:
+            return f.q_pos_m * max(self.sigma_pos(fix) / f.gnss_pos_unreported_m, 1.0)
+        if not fix.hdop:
             return f.q_pos_m
         return f.q_pos_m * min(max(fix.hdop, 1.0), ACC_CAP)
 
@@ -148,7 +183,7 @@ class GnssAiding:
         if not fix.vel_acc_mps:
             sigma = f.gnss_vel_unreported_mps
         else:
-            sigma = min(max(f.gnss_vel_sigma_mps, fix.vel_acc_mps), ACC_CAP * f.gnss_vel_sigma_mps)
+            sigma = min(max(f.gnss_vel_sigma_mps, fix.vel_acc_mps), self.cap_vel())
         return math.hypot(sigma, 2.0 * math.hypot(fix.vel_e_mps, fix.vel_n_mps)) if held else sigma
 
     def position(self, fix: GnssFix, en: tuple[float, float], x: np.ndarray) -> Aid:

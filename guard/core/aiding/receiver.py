@@ -1,0 +1,69 @@
+"""What a receiver usually says of itself: how far its accuracy figures are taken.
+
+A fix's noise is the receiver's own accuracy figures (h_acc, vel_acc: guard.core.aiding.gnss), bounded
+above, because a receiver, or a spoofer, that suddenly claims a huge error would blind every test. A
+bound fixed at ACC_CAP times the floors (0.6 m/s, a position good to 8.75 m) is wrong for a receiver
+that is that poor all along: a real PX4 octocopter's, with 7 to 11 satellites, called its velocity good to
+1.1 to 2.8 m/s for whole flights (PX4's own filter took it so), and tested at 0.6 m/s its honest noise
+raised 14 GNSS velocity alarms in 2.5 minutes of flight (README, "A receiver that knows it is poor").
+
+So the bound is the larger of the fixed one and LEVEL_FACTOR times the receiver's usual figure: the
+median of what it reported over the last LEVEL_WINDOW_S of fixes heard while every test was calm
+(nothing near its threshold, nothing set aside), and never more than LEVEL_MAX times the floors. The
+filter's first fixes (nothing tested yet) count, so a receiver that is poor from power-on is taken at
+its word from the start. What it costs, and what it does not:
+- a receiver good to 0.1 m/s that suddenly claims 3 m/s (a spoofer blinding the tests) is still taken
+  at the fixed bound: its usual figure is 0.1, and a claim that lasts is heard only while no test
+  stirs, for more than half the window before the median moves;
+- a spoofer who raises the claimed error slowly, before he moves anything, raises the bound with it,
+  up to LEVEL_MAX times the floors; the monitor says so (a WARNING once the bound passes the fixed
+  one), so that an operator whose receiver is good hears of it;
+- a receiver that is poor is tested as poor: its attacks must be that much larger to be seen, and
+  the WARNING says so.
+
+This file learns the figure; GnssAiding applies it and the monitor feeds it.
+"""
+
+from __future__ import annotations
+
+import statistics
+from collections import deque
+
+from guard.model.samples import GnssFix
+
+LEVEL_WINDOW_S = 120.0  # s of calm fixes whose median is the receiver's usual figure
+LEVEL_FACTOR = 1.5      # a fix's figure is taken up to this many times the usual (real receivers' reports
+                        # vary by 1.25 at the 90th percentile, 1.55 at most, about their median in a flight)
+LEVEL_MAX = 50.0        # ... and never beyond this many times the floor (3 m/s; a position good to 44 m)
+
+
+class ReceiverLevel:
+    """The medians of a receiver's reported h_acc and vel_acc over its last LEVEL_WINDOW_S of calm fixes:
+    h_acc (m) and vel_acc (m/s), None where none was heard."""
+
+    def __init__(self):
+        self._h: deque[tuple[int, float]] = deque()     # (t_us, h_acc m)
+        self._v: deque[tuple[int, float]] = deque()     # (t_us, vel_acc m/s)
+        self.h_acc: float | None = None
+        self.vel_acc: float | None = None
+
+    def hear(self, fix: GnssFix, calm: bool) -> None:
+        """A fix the filter is about to use; its figures count towards the usual ones if calm. A time
+        that goes back (the autopilot rebooted) starts the window over."""
+        for window, value in ((self._h, fix.h_acc_m), (self._v, fix.vel_acc_mps)):
+            if window and fix.t_us < window[-1][0]:
+                window.clear()
+            if calm and value:
+                window.append((fix.t_us, value))
+            while window and window[0][0] < fix.t_us - LEVEL_WINDOW_S * 1e6:
+                window.popleft()
+        self.h_acc = statistics.median(v for _, v in self._h) if self._h else None
+        self.vel_acc = statistics.median(v for _, v in self._v) if self._v else None
+
+
+def bound(floor: float, fixed: float, usual: float | None) -> float:
+    """The largest noise a fix's own figure is taken at: the fixed bound, or LEVEL_FACTOR times the
+    receiver's usual figure (already in noise units), whichever is larger, up to LEVEL_MAX floors."""
+    if usual is None:
+        return fixed
+    return max(fixed, min(LEVEL_FACTOR * usual, LEVEL_MAX * floor))
