@@ -124,6 +124,21 @@ def test_a_good_receiver_that_claims_a_poor_one_all_of_a_sudden_is_not_believed(
     assert alarm is None or alarm.t_us - onset > 2_000_000, alarm
 
 
+def test_a_claim_that_creeps_up_raises_the_bound_and_is_said():
+    """What a patient spoofer can do against the learnt bound, and what the operator hears: a receiver
+    good to 0.1 m/s whose claimed velocity accuracy creeps up to 2 m/s over four minutes while nothing
+    else changes (the spoofer preparing to blind the tests). The bound follows (the median over the
+    last 2 minutes of calm fixes, at most 1.5 times it), so it passes the fixed cap; a WARNING says so
+    once, naming the figure, while the claim is still under 1.5 m/s."""
+    claim = lambda t: 0.1 if t < 60.0 else min(2.0, 0.1 + 1.9 * (t - 60.0) / 240.0)
+    samples = [dataclasses.replace(s, vel_acc_mps=claim((s.t_us - T0_US) / 1e6)) if isinstance(s, GnssFix) else s
+               for s in drive(360.0, seed=9)]
+    mon, events = run(samples)
+    told = [n for n in of(events, Notice) if "usually reports its velocity good to" in n.text]
+    assert len(told) == 1 and told[0].level == "warning", [n.text for n in of(events, Notice)]
+    assert claim((told[0].t_us - T0_US) / 1e6) < 1.5
+    assert mon.gnss_aid.cap_vel() > 0.6
+
 @pytest.mark.parametrize("seed", [1, 2])
 def test_a_receiver_that_calls_itself_good_to_8_m_wanders_as_far_unalarmed(seed, monkeypatch):
     """A receiver that reports h_acc 8 m and whose fixes wander slowly by that much (6 m either way over
