@@ -9,7 +9,9 @@ An ArduPilot DataFlash log carries its EKF's own GNSS velocity innovations (XKF3
 EKF2, EKF3 for EKF1: IVN, IVE, in m/s) and the IMU's vibration (VIBE: VibeX..Z in m/s/s, Clip); a
 PX4 ULog its EKF2's (estimator_innovations: gps_hvel[0] north, [1] east, m/s) and the first IMU's
 vibration (vehicle_imu_status: accel_vibration_metric in m/s, gyro_vibration_metric in rad/s, both
-PX4's high-frequency levels of the IMU's deltas, and accel_clipping). For
+PX4's high-frequency levels of the IMU's deltas, and accel_clipping); a PX4 log of before 1.11 (2020)
+the same under older names (ekf2_innovations: vel_pos_innov[0] north, [1] east; estimator_status:
+vibe[2] the delta velocity's level in m/s, vibe[1] the delta angle's in rad, no clipping). For
 each time asked (by default each alarm of guard's replay), over the `--window` seconds before it:
 the mean of the autopilot's velocity innovations north and east, and where that mean ranks among
 every such window of the log before it (1 = the largest so far); the vibration's mean and maximum
@@ -53,8 +55,9 @@ def read_ulog(path: str) -> dict:
     """The same from a PX4 ULog: EKF2's GNSS velocity innovations of its first instance (t s, north,
     east) and the first IMU's vibration metrics (t s, accel, gyro, clipping summed over the axes)."""
     from pyulog import ULog
-    log = ULog(path, ["estimator_innovations", "vehicle_imu_status"])
+    log = ULog(path, ["estimator_innovations", "vehicle_imu_status", "ekf2_innovations", "estimator_status"])
     innov, vibe = np.empty((0, 3)), np.empty((0, 4))
+    old_innov, old_vibe = innov, vibe           # PX4 before 1.11: read where the newer topics are absent
     for d in log.data_list:
         if d.multi_id != 0:
             continue
@@ -65,6 +68,12 @@ def read_ulog(path: str) -> dict:
             clip = sum(d.data.get(f"accel_clipping[{i}]", np.zeros_like(t)) for i in range(3))
             vibe = np.column_stack([t, d.data["accel_vibration_metric"], d.data["gyro_vibration_metric"],
                                     clip]).astype(float)
+        elif d.name == "ekf2_innovations" and "vel_pos_innov[0]" in d.data:
+            old_innov = np.column_stack([t, d.data["vel_pos_innov[0]"], d.data["vel_pos_innov[1]"]]).astype(float)
+        elif d.name == "estimator_status" and "vibe[2]" in d.data:
+            old_vibe = np.column_stack([t, d.data["vibe[2]"], d.data["vibe[1]"], np.zeros_like(t)]).astype(float)
+    innov = innov if len(innov) else old_innov
+    vibe = vibe if len(vibe) else old_vibe
     return {"ekf": "EKF2" if len(innov) else None, "innovations": innov, "vibe": vibe, "format": "ulog"}
 
 
@@ -143,14 +152,15 @@ def say(v: dict, alarm: dict | None) -> str:
                      f"(rank {v['innovation_east_rank']} of {v['innovation_east_windows']})"
                      + ("; every one 0: the autopilot was not fusing the GNSS there" if v["innovation_zero"] else ""))
     else:
-        lines.append("  no EKF velocity innovations in the log there (XKF3/NKF3/EKF3, estimator_innovations)")
+        lines.append("  no EKF velocity innovations in the log there (XKF3/NKF3/EKF3, estimator_innovations, "
+                     "ekf2_innovations)")
     if "vibe_mean" in v:
         lines.append(f"  {v['vibe_is']}: mean {' '.join(f'{x:g}' for x in v['vibe_mean'])}, "
                      f"max {' '.join(f'{x:g}' for x in v['vibe_max'])}"
                      f"{' (over ArduPilot' + chr(39) + 's 30)' if v['vibe_over_limit'] else ''}; "
                      f"clipping {v['clipping']}")
     else:
-        lines.append("  no vibration record in the log there (VIBE, vehicle_imu_status)")
+        lines.append("  no vibration record in the log there (VIBE, vehicle_imu_status, estimator_status)")
     return "\n".join(lines)
 
 

@@ -62,3 +62,25 @@ def test_what_it_cannot_read_is_named(tool, tmp_path, capsys):
     assert str(tlog) in capsys.readouterr().err
     assert tool.main([str(tmp_path / "missing.bin")]) == 2
     assert "missing.bin: cannot open" in capsys.readouterr().err
+
+
+def test_a_px4_log_of_before_1_11_is_read_under_its_older_names(tool, tmp_path, capsys):
+    """PX4 before 1.11 logged EKF2's innovations as ekf2_innovations (vel_pos_innov: north, east, down
+    velocity, then position) and the IMU's vibration in estimator_status (vibe[1] the delta angle's,
+    vibe[2] the delta velocity's level). A log written with those topics alone (pyulog's writer): the
+    north velocity innovation of its last 2 s read at 4 s, ranked the largest, the vibration read."""
+    from guard_sim.ulog import to_ulog
+    innov_fields = [("uint64_t", 0, "timestamp"), ("float", 6, "vel_pos_innov")]
+    status_fields = [("uint64_t", 0, "timestamp"), ("float", 3, "vibe")]
+    innov = [(t * 100_000, 0.5 if t >= 20 else 0.01, -0.02, 0.0, 0.3, 0.1, 0.0) for t in range(41)]
+    status = [(t * 100_000, 1e-4, 2e-4, 0.02) for t in range(41)]
+    ulog = to_ulog({"ekf2_innovations": innov, "estimator_status": status},
+                   {"ekf2_innovations": innov_fields, "estimator_status": status_fields})
+    path = tmp_path / "old_px4.ulg"
+    ulog.write_ulog(str(path))
+    assert tool.main([str(path), "--at", "4", "--window", "2", "--json", str(tmp_path / "view.json")]) == 0
+    v, = json.loads((tmp_path / "view.json").read_text())
+    assert v["ekf"] == "EKF2" and abs(v["innovation_north_mps"] - 0.5) < 1e-6 and v["innovation_north_rank"] == 1
+    assert abs(v["innovation_east_mps"] + 0.02) < 1e-6 and not v["innovation_zero"]
+    assert v["vibe_max"] == [0.02, 0.0002] and v["clipping"] == 0
+    assert "EKF2 GNSS velocity innovation" in capsys.readouterr().out
