@@ -3,9 +3,10 @@
 A fix's noise is the receiver's own accuracy figures (h_acc, vel_acc: guard.core.aiding.gnss), bounded
 above, because a receiver, or a spoofer, that suddenly claims a huge error would blind every test. A
 bound fixed at ACC_CAP times the floors (0.6 m/s, a position good to 8.75 m) is wrong for a receiver
-that is that poor all along: a real PX4 octocopter's, with 7 to 11 satellites, called its velocity good to
-1.1 to 2.8 m/s for whole flights (PX4's own filter took it so), and tested at 0.6 m/s its honest noise
-raised 14 GNSS velocity alarms in 2.5 minutes of flight (README, "A receiver that knows it is poor").
+that is that poor all along: a real PX4 octocopter's, with 7 to 11 satellites, called its velocity
+good to 1.1 to 2.8 m/s for whole flights (PX4's own filter fused it in one flight and refused it in
+another), and tested at 0.6 m/s its honest noise raised 14 GNSS velocity alarms in 2.5 minutes of flight
+(README, "A receiver that knows it is poor").
 
 So the bound is the larger of the fixed one and LEVEL_FACTOR times the receiver's usual figure: the
 median of what it reported over the last LEVEL_WINDOW_S of fixes heard while every test was calm
