@@ -89,9 +89,9 @@ def test_one_odd_fix_beyond_the_cap_is_not_worth_a_warning():
 def test_a_receiver_poor_all_along_is_taken_at_its_word_and_said_to_be_blunter(noise, seed, monkeypatch):
     """A receiver whose velocity noise is 1.2 or 2 m/s and says so from power-on (a real PX4 copter's, with
     7 to 11 satellites, reported 1.1 to 2.8 m/s for whole flights): taken at its word, past the fixed
-    cap of 0.6 m/s, as what it usually reports (guard.core.aiding.receiver); quiet for five minutes, and
+    cap of 0.6 m/s, as what it usually reports (guard.core.aiding.receiver); quiet for two minutes, and
     a WARNING says once that its tests are blunter. The control, the fixed cap alone, alarms."""
-    samples = drive(300.0, seed=seed, vel_noise=noise, vel_acc=noise)
+    samples = drive(120.0, seed=seed, vel_noise=noise, vel_acc=noise)
     mon, events = run(samples)
     assert of(events, Alarm) == []
     told = [n for n in of(events, Notice) if "usually reports its velocity good to" in n.text]
@@ -150,7 +150,7 @@ def test_a_receiver_that_calls_itself_good_to_8_m_wanders_as_far_unalarmed(seed,
 
     def events_of(h_acc):       # good to 4.5 m at the start (guard starts on a fix good to 5 m), then h_acc
         samples = [dataclasses.replace(s, h_acc_m=h_acc) if isinstance(s, GnssFix) and s.t_us >= T0_US + 10e6
-                   else s for s in drive(240.0, seed=seed, gnss_offset=wander, h_acc=4.5)]
+                   else s for s in drive(150.0, seed=seed, gnss_offset=wander, h_acc=4.5)]
         return run(samples, AIR)[1]
 
     events = events_of(8.0)
