@@ -291,9 +291,10 @@ class Monitor:
         # what the receiver usually says of itself (guard.core.aiding.receiver), heard while no test stirs;
         # a new filter's first fix is tested by nothing
         self.gnss_aid.level.hear(fix, self.ekf is None or (self.judge.calm and not self.health.excluded))
-        if not self._usual_said and self.gnss_aid.poor_as_usual():
+        usual = None if self._usual_said else self.gnss_aid.poor_as_usual()
+        if usual:
             self._usual_said = True
-            events.append(Notice(fix.t_us, "warning", self.gnss_aid.poor_as_usual()))
+            events.append(Notice(fix.t_us, "warning", usual))
         if self.ekf is None:
             return events + self._initialise(fix)
         events += self._kind_unsaid(fix.t_us)
