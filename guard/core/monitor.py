@@ -36,8 +36,9 @@ from guard.core.aiding.compass import NO_COMPASS_S, CompassWatch
 from guard.core.aiding.gnss import (HELD_COURSE_MAX_MPS, START_H_ACC_M, START_HDOP, FreezeWatch, GnssAiding,
                                     across_track, gnss_velocity_model)
 from guard.core.aiding.impact import BUDGET_S, HOLD_S, IMPACT_G, MEAN_S, WINDOW_S, Impact
-from guard.core.aiding.tilt import Tilt
 from guard.core.aiding.imu import Averager, ImuAiding, RateWatch, fuse_rows, heading, level, row_sensors
+from guard.core.aiding.motors import MotorWatch, offset_q
+from guard.core.aiding.tilt import Tilt
 from guard.core.anchor import Learnt, diverged, initial_state
 from guard.core.detectors import DetectorConfig, make_detector
 from guard.core.drift import Drift
@@ -115,6 +116,7 @@ class Monitor:
         self.inertial: bool | None = None           # None until the IMU's rate is known; False: too slow
         self.imu_rate = RateWatch(self.cfg.min_imu_hz)
         self.compass = CompassWatch()               # whether an air vehicle has a compass at all
+        self.motors = MotorWatch()                  # the motors' start and stop, heard in the IMU
         self._last_mag: tuple[float, float] | None = None     # levelled (m_x, m_y) of the latest IMU sample
         self._learnt: Learnt | None = None          # what a restarted filter keeps of the vehicle (_reinitialise)
         self._fix: GnssFix | None = None            # the latest fix, and where it is in the local frame
@@ -446,6 +448,7 @@ class Monitor:
         aside = self.inertial and self.ekf is not None and self._blow(s, events)
         self.imu_aid.noise.add(s.t_us, ax, ay, rate, None if mag is None else heading(*mag, self.declination),
                                learn=not aside, calm=self.judge.calm)
+        events += self.motors.step(s.t_us, self.imu_aid.noise.vibration(), self.ekf)
         if self.inertial is False:
             self.skipped["imu_no_compass" if self.compass.absent else "imu_too_slow"] += 1
             return events
@@ -459,6 +462,8 @@ class Monitor:
         if due is None:
             return events
         ax, ay, rate, mag, tilt, tilt_rate, n = due
+        self.ekf.q[BM] = offset_q(self.cfg.filter.q_mag_offset_rad, self.motors.open(s.t_us),
+                                  float(self.ekf.P[BM, BM])) ** 2
         self._advance(s.t_us)
         theta = None if mag is None else heading(*mag, self.declination)
         if theta is None and not self.compass.heard:   # a compass slower than the IMU is not one missing

@@ -160,6 +160,14 @@ class ImuNoise:
                 self.short[i].append(dd * dd / 6.0)
             self._d[i] = di
 
+    def vibration(self) -> float | None:
+        """The accelerometers' short noise (m/s^2, the larger axis's), None until both are known: what
+        guard.core.aiding.motors hears the motors by."""
+        x, y = self.short[0], self.short[1]
+        if len(x) < NOISE_SHORT or len(y) < NOISE_SHORT:
+            return None
+        return math.sqrt(max(sorted(x)[NOISE_SHORT // 2], sorted(y)[NOISE_SHORT // 2]))
+
     def sigmas(self, floors: tuple[float, float, float, float], n: int) -> list[float]:
         """The noise of a mean of n samples: each reading's (the larger memory's), within [floor,
         NOISE_CAP * floor]."""
