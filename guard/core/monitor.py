@@ -486,7 +486,9 @@ class Monitor:
         for sensor, i, j in blocks:
             last = len(r) if lateral and sensor == Sensor.ACCEL else j     # the constraint's row follows the
                                                                             # accelerometer's
-            ev, fused = self._test(sensor, s.t_us, r[i:last], S[i:last, i:last])
+            # the compass's in a motors' window: its S holds the offset's fast walk, not the compass's noise
+            ev, fused = self._test(sensor, s.t_us, r[i:last], S[i:last, i:last],
+                                   modelled=sensor != Sensor.MAG or not self.motors.open(s.t_us))
             events += ev
             if fused:
                 keep.extend(range(i, j))
@@ -583,9 +585,9 @@ class Monitor:
     def _test(self, sensor: Sensor, t_us: int, r: np.ndarray, S: np.ndarray,
               modelled: bool = True) -> tuple[list[Event], bool]:
         """Test one innovation and learn from it. One whose variance was widened past the sensor's model
-        (`modelled` False: a held course) is tested and fused, but the model's fit and the wander leave
-        it out (its error is the course it repeats, not the receiver's noise; the wander's block being
-        filled is dropped)."""
+        (`modelled` False: a held course, the compass in a motors' window) is tested and fused, but the
+        model's fit and the wander leave it out (its error is the course it repeats, or its S the
+        offset's fast walk, not the sensor's noise; the wander's block being filled is dropped)."""
         events, fused = self.judge.test(sensor, t_us, r, S, self.ekf, self.t_us, self.gnss_index, self.record_tests,
                                         modelled)
         calm = self.ekf.learning = self.judge.calm      # nothing is learnt while a test is near its threshold

@@ -20,7 +20,9 @@ when the model fits. From logs without an attack, guard tune fits, in this order
    car's receiver's velocity floor came out over three times its own);
 3. the compass's offset (`filter.mag_offset_rad`) and, on wheels, their slip (`filter.slip_rad_per_mps2`)
    and how far ahead of the axle the sensors sit (`filter.sensors_ahead_m`): what the filter learnt,
-   averaged over the logs;
+   averaged over the logs; the compass's offset with the motors still, less what it moved in the
+   windows after the motors started or stopped (guard.core.aiding.motors), which each flight learns
+   anew;
 4. whether one noise level fits every flight: if any one log's innovations, on any sensor, pass
    the tuned model (a factor over 1) and its test comes within NEAR of its threshold (`unfitted`),
    it does not, and the profile lets each test widen in flight by the wander it measures
@@ -149,7 +151,8 @@ def measure(logs: list[str], cfg: Config, each: list | None = None) -> tuple[Inn
             sink.wander[s] = sink.wander.get(s, 0.0) + one.wander[s]
             sink.blocks[s] = sink.blocks.get(s, 0) + one.blocks[s]
         if one.mag_offset is not None:
-            offsets.append(one.mag_offset)
+            still = reports[-1].get("compass_offset_still_rad")     # less what the motors' current turned
+            offsets.append(one.mag_offset if still is None else still)
             slips.append(one.slip)
             aheads.append(one.ahead)
     sink.mag_offset = sum(offsets) / len(offsets) if offsets else None

@@ -134,6 +134,8 @@ class ReportSink(Sink):
             "cleared": self.cleared,
             "notices": self.notices,
             "estimate_to_fix_m": self.gap.summary(),
+            # the compass's offset with the motors still (rad; guard.core.aiding.motors), what guard tune writes
+            "compass_offset_still_rad": monitor.motors.still_offset(monitor.ekf),
         }
 
 

@@ -38,6 +38,7 @@ def test_a_real_clean_flight_raises_no_alarm_and_the_estimate_stays_on_the_fixes
     assert report["gnss_samples"] > 20 and report["notes"]
     assert worst_distance_to_fixes(trace) < 5.0
     assert 0.0 < report["estimate_to_fix_m"]["max"] < 5.0       # the report's own measure, against the fix fused
+    assert abs(report["compass_offset_still_rad"]) < 0.5          # what guard tune would write of its compass
 
 
 def test_the_crash_log_says_its_blow_and_little_before(shared):

@@ -60,6 +60,18 @@ def test_the_compass_turned_by_the_motors_current_is_learnt_not_alarmed(vehicle,
     assert abs(said_deg - turn_deg) < (1.0 if vehicle is GROUND else 6.0), turned[0].text
 
 
+@pytest.mark.parametrize("seed,still_deg", [(1, 0.0), (2, 3.0), (3, -4.0)])
+def test_the_offset_with_the_motors_still_is_what_tune_writes(seed, still_deg):
+    """A car whose compass is still_deg off at rest and turned 20 degrees more by its motors: the
+    filter's b_psi ends at the sum, and the offset with the motors still (what `guard tune` writes, as
+    every flight learns its take-off anew) at still_deg alone, within 1 degree."""
+    samples = drive(90.0, yaw=0.4, seed=seed, vibration=lambda t: 1.0 if t >= START_S else 0.0,
+                    mag_offset_deg=still_deg, mag_turn=take_off(20.0))
+    mon, events = run(samples, GROUND)
+    assert abs(math.degrees(mon.ekf.x[BM]) + still_deg + 20.0) < 1.0, math.degrees(mon.ekf.x[BM])
+    assert abs(math.degrees(mon.motors.still_offset(mon.ekf)) + still_deg) < 1.0
+
+
 @pytest.mark.parametrize("seed,turn_deg", [(1, 20.0), (2, -15.0), (3, 35.0)])
 def test_without_the_window_the_same_take_off_alarms_the_compass(seed, turn_deg, monkeypatch):
     """The control: the offset's random walk left as configured through the motors' start, the same

@@ -59,6 +59,7 @@ class MotorWatch:
         self._t_us: int | None = None
         self._under_since: int | None = None
         self._window: tuple | None = None   # the last start's or stop's word, its filter and b_psi then
+        self.moved = 0.0                    # rad, what b_psi moved in the closed windows (of one filter each)
 
     def step(self, t_us: int, level: float | None, ekf) -> list[Notice]:
         """One IMU sample's vibration level, with the filter (None before the first fix): a start or a
@@ -81,6 +82,7 @@ class MotorWatch:
         self._window = None
         if ekf0 is None or ekf0 is not ekf:
             return []
+        self.moved += math.remainder(float(ekf.x[BM]) - b0, math.tau)
         turn = -math.degrees(math.remainder(float(ekf.x[BM]) - b0, math.tau))     # clockwise, as a compass reads
         big = abs(turn) >= MOTORS_SAY_DEG
         return [Notice(t_us, "warning" if big else "info", f"the compass turned {turn:+.1f} deg in the {OPEN_S:g} s "
@@ -115,6 +117,18 @@ class MotorWatch:
             return None
         self.running, self.still, self.opened_us, self._under_since = False, now, t_us, None
         return "stop"
+
+    def still_offset(self, ekf) -> float | None:
+        """The compass's offset with the motors still: the filter's b_psi less what it moved in the
+        windows, the one still open included (what `guard tune` writes: a flight's take-off is learnt
+        anew in its own window, and a profile that started b_psi at an in-flight offset would count
+        the motors' turn twice). None without a filter."""
+        if ekf is None:
+            return None
+        b = float(ekf.x[BM])
+        if self._window is not None and self._window[1] is ekf:
+            b -= math.remainder(b - self._window[2], math.tau)
+        return math.remainder(b - self.moved, math.tau)
 
     def open(self, t_us: int) -> bool:
         """Whether the compass's offset moves fast at t_us (within OPEN_S of a start or stop)."""
