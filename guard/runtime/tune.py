@@ -29,7 +29,7 @@ when the model fits. From logs without an attack, guard tune fits, in this order
    (`monitor.max_wander_factor` = guard.core.longrun.F_MAX; learnt slowly and only while every test
    is calm). The cost is said: on a flight that wanders, an attack is caught later by as much. On
    7 held-out real copter flights (README, "Real flights never tuned on") it took the tuned profile
-   from 12 alarms to 3, and a 5 m step written into their fixes from 4 of 21 caught to 2.
+   from 14 alarms to 4, and a 5 m step written into their fixes from 7 of 21 caught to 3.
 Then it replays the logs with the profile and prints each one's margin: the largest statistic over its
 threshold per sensor (1.0 is an alarm). The profile is what it fitted; the file it writes holds that
 and, so that it works alone with --config, the settings of the config it started from that differ
