@@ -53,24 +53,6 @@ def test_tuned_on_clean_drives_the_held_out_one_is_quiet_and_its_attack_caught(d
     assert parse(tomllib.loads(text), "profile").monitor.filter.gnss_delay_s == pytest.approx(0.2)
 
 
-def test_on_wheels_the_sensors_place_is_learnt_and_the_constraint_fitted_apart(tmp_path):
-    """Sensors 1 m ahead of the axle: tune writes where they sit (`sensors_ahead_m`). Told they sit on
-    it (d held at 0), the sideways constraint, tested with the accelerometer, reads their swing: tune
-    widens the constraint (`lateral_sigma_mps`), not the accelerometer's noise."""
-    base = scn.load("clean")
-    route = dataclasses.replace(base.route, sideslip_rad_per_mps2=SLIP, max_yaw_jerk_radps3=2.0, sensors_ahead_m=1.0)
-    paths = []
-    for seed in (1, 2):
-        paths.append(str(tmp_path / f"ahead{seed}.tlog"))
-        run(dataclasses.replace(base, duration_s=110.0, route=route), seed, tlog=paths[-1])
-    held = {"p0_sensors_ahead_m": 0.0, "q_sensors_ahead_m": 0.0}
-    fitted = {name: tune(paths, parse(table, "base"), say=lambda line: None)[0]["filter"] for name, table in (
-        ("learnt", {"monitor": {"vehicle": "ground"}}), ("held", {"filter": held, "monitor": {"vehicle": "ground"}}))}
-    assert fitted["learnt"]["sensors_ahead_m"] == pytest.approx(1.0, abs=0.2)
-    assert fitted["held"]["lateral_sigma_mps"] > 2 * fitted["learnt"].get("lateral_sigma_mps", 0.05), fitted
-    assert fitted["held"]["accel_sigma_mps2"] == pytest.approx(fitted["learnt"]["accel_sigma_mps2"], rel=0.15)
-
-
 def test_the_cli_writes_a_profile_and_names_a_missing_log(drives, tmp_path):
     """The profile works alone with --config: it holds what tune fitted and the settings of the config
     it started from (a ground vehicle, which changes the fit; a link), said in its header."""
