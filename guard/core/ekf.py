@@ -88,6 +88,9 @@ class FilterConfig:
     gnss_pos_unreported_m: float = 0.5   # a receiver that reports no accuracy (per unit of HDOP, where it gives one)
     gnss_vel_sigma_mps: float = 0.06  # the floor of a fix's velocity noise
     gnss_vel_unreported_mps: float = 0.3   # a receiver that reports no speed accuracy
+    gnss_h_acc_usual_max_m: float = 0.0      # the most a receiver's usual h_acc is believed to be (guard tune: twice
+                                             # its clean logs' worst; guard.core.aiding.receiver); 0: unknown
+    gnss_vel_acc_usual_max_mps: float = 0.0  # the same for its usual vel_acc
     heading_sigma_rad: float = 0.03   # the magnetometer heading's floor (see gyro_sigma_radps)
     heading_lag_s: float = 0.1        # how late the magnetometer and the attitude that levels the IMU may be:
                                       # adds (yaw rate * lag)^2 to the heading's R, and what a tilt that late

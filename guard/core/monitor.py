@@ -124,6 +124,7 @@ class Monitor:
         self.drift = Drift()                        # the IMU's open-loop drift, measured in flight (the vehicle's)
         self._held_said = False                     # the receiver holds its course at low speed: said once
         self._usual_said = False                    # a receiver poorer than the fixed bound all along: likewise
+        self._beyond_said = False                   # ... or than guard tune believes of this vehicle: likewise
         self._reset()
 
     def _reset(self) -> None:
@@ -297,6 +298,10 @@ class Monitor:
         if usual:
             self._usual_said = True
             events.append(Notice(fix.t_us, "warning", usual))
+        beyond = None if self._beyond_said else self.gnss_aid.beyond_usual()
+        if beyond:
+            self._beyond_said = True
+            events.append(Notice(fix.t_us, "warning", beyond))
         if self.ekf is None:
             return events + self._initialise(fix)
         events += self._kind_unsaid(fix.t_us)

@@ -23,7 +23,12 @@ when the model fits. From logs without an attack, guard tune fits, in this order
    averaged over the logs; the compass's offset with the motors still, less what it moved in the
    windows after the motors started or stopped (guard.core.aiding.motors), which each flight learns
    anew;
-4. whether one noise level fits every flight: if any one log's innovations, on any sensor, pass
+4. how poor the receiver usually says it is (`filter.gnss_h_acc_usual_max_m`, `gnss_vel_acc_usual_max_mps`):
+   USUAL_MARGIN times the worst of its usual figures over the logs (guard.core.aiding.receiver,
+   `UsualWorst`), so that in flight the cap on its figures follows a receiver that turns poor only
+   that far and a spoofer who raises its claims slowly cannot blunt its tests; left unset for a
+   receiver that reports none;
+5. whether one noise level fits every flight: if any one log's innovations, on any sensor, pass
    the tuned model (a factor over 1) and its test comes within NEAR of its threshold (`unfitted`),
    it does not, and the profile lets each test widen in flight by the wander it measures
    (`monitor.max_wander_factor` = guard.core.longrun.F_MAX; learnt slowly and only while every test
@@ -49,10 +54,12 @@ import tomli_w
 
 from guard.config import Config, table
 from guard.core.aiding.imu import lateral_rows
+from guard.core.aiding.receiver import USUAL_MARGIN, UsualWorst
 from guard.core.ekf import BM, KS, LA, FilterConfig
 from guard.core.longrun import BLOCK, F_MAX, BlockMeans, normalised
 from guard.errors import GuardError
 from guard.model.events import Estimate, Tested
+from guard.model.samples import GnssFix
 from guard.model.sensors import Sensor
 from guard.runtime.replay import replay
 from guard.sinks.base import Sink
@@ -129,21 +136,46 @@ class Innovations(Sink):
         return math.sqrt(max(per_sample, wander))
 
 
+class Figures(Sink):
+    """A log's receiver: its worst usual accuracy figures (UsualWorst)."""
+
+    def __init__(self):
+        self.worst = UsualWorst()
+
+    def on_sample(self, sample) -> None:
+        if isinstance(sample, GnssFix):
+            self.worst.hear(sample)
+
+
+def usual_max(figures: list[Figures]) -> dict[str, float]:
+    """The profile's keys for the receiver's usual figures: USUAL_MARGIN times the worst over the logs,
+    each only where some log's receiver reported it."""
+    out = {}
+    for i, key in enumerate(("gnss_h_acc_usual_max_m", "gnss_vel_acc_usual_max_mps")):
+        heard = [w for f in figures if (w := f.worst.worst()[i]) is not None]
+        if heard:
+            out[key] = round(USUAL_MARGIN * max(heard), 3)
+    return out
+
+
 def with_filter(cfg: Config, **changes) -> Config:
     flt = dataclasses.replace(cfg.monitor.filter, **changes)
     return dataclasses.replace(cfg, monitor=dataclasses.replace(cfg.monitor, filter=flt))
 
 
-def measure(logs: list[str], cfg: Config, each: list | None = None) -> tuple[Innovations, list[dict]]:
+def measure(logs: list[str], cfg: Config, each: list | None = None,
+            figures: list | None = None) -> tuple[Innovations, list[dict]]:
     """Replay every log with cfg; the innovations of all of them, and each one's report (and each
-    one's innovations into `each`, if given)."""
+    one's innovations into `each`, its receiver's figures into `figures`, if given)."""
     sink, reports = Innovations(), []
     offsets, slips, aheads = [], [], []
     for log in logs:
-        one = Innovations()
-        reports.append(replay(log, cfg, listeners=[one]))
+        one, fig = Innovations(), Figures()
+        reports.append(replay(log, cfg, listeners=[one] if figures is None else [one, fig]))
         if each is not None:
             each.append(one)
+        if figures is not None:
+            figures.append(fig)
         for s in one.sum:
             sink.sum[s] = sink.sum.get(s, 0.0) + one.sum[s]
             sink.n[s] = sink.n.get(s, 0) + one.n[s]
@@ -205,17 +237,30 @@ def tune(logs: list[str], base: Config, say: Callable[[str], None] = print) -> t
                 changes[key] = min(max(getattr(cfg.monitor.filter, key) * f * MARGIN, lo), hi)
         cfg = with_filter(cfg, **changes)
     # 3. the compass's offset
-    sink, reports = measure(logs, cfg)
+    figures: list[Figures] = []
+    sink, reports = measure(logs, cfg, figures=figures)
     if sink.mag_offset is not None:
         # an air vehicle's slip and lever arm are never learnt: they stay where they started, and the
         # profile leaves them out
         cfg = with_filter(cfg, mag_offset_rad=sink.mag_offset, slip_rad_per_mps2=min(max(sink.slip, 0.0), 0.05),
                           sensors_ahead_m=min(max(sink.ahead, -3.0), 3.0))
+    # 4. how poor the receiver usually says it is
+    usual = usual_max(figures)
+    if usual:
+        cfg = with_filter(cfg, **usual)
+        said = [f"h_acc {usual['gnss_h_acc_usual_max_m'] / USUAL_MARGIN:.2f} m"] \
+            if "gnss_h_acc_usual_max_m" in usual else []
+        said += [f"vel_acc {usual['gnss_vel_acc_usual_max_mps'] / USUAL_MARGIN:.2f} m/s"] \
+            if "gnss_vel_acc_usual_max_mps" in usual else []
+        say(f"receiver: its usual figures at worst {' and '.join(said)}; believed up to {USUAL_MARGIN:g} times "
+            "that in flight, no further")
+    else:
+        say("receiver: it reports no accuracy figures; what it usually says is not bounded by this profile")
     for sensor in KEYS:
         f = sink.factor(sensor)
         if f is not None:
             say(f"{sensor}: innovations {f:.2f}x the tuned model")
-    # 4. whether one noise level fits every flight
+    # 5. whether one noise level fits every flight
     each: list[Innovations] = []
     pooled, reports = measure(logs, cfg, each)
     over = unfitted(logs, each, reports)

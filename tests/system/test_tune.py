@@ -45,6 +45,11 @@ def test_tuned_on_clean_drives_the_held_out_one_is_quiet_and_its_attack_caught(d
     assert profile["filter"]["gnss_delay_s"] == pytest.approx(0.2)
     assert profile["filter"]["slip_rad_per_mps2"] == pytest.approx(SLIP, abs=0.004)
     assert "monitor" not in profile, "drives alike: one noise level fits them, no widening in flight"
+    # the receiver's usual figures (h_acc 0.8 m, vel_acc 0.05 m/s, as the simulator reports them): believed
+    # up to twice that
+    noise = scn.load("clean").noise
+    assert profile["filter"]["gnss_h_acc_usual_max_m"] == pytest.approx(2 * noise.gnss_h_acc_m, rel=0.01)
+    assert profile["filter"]["gnss_vel_acc_usual_max_mps"] == pytest.approx(2 * noise.gnss_vel_white_mps, rel=0.01)
     assert replay(drives[3], cfg)["alarms"] == []
     alarms = replay(drives["attack"], cfg)["alarms"]
     assert alarms and alarms[0]["sensor"] == "gnss_pos" and 0 <= alarms[0]["gnss_index"] - drives["k0"] <= 1, alarms[:2]

@@ -103,12 +103,34 @@ class GnssAiding:
         """The largest position noise a fix's own figures are taken at, m (receiver.bound)."""
         f, h = self.f, self.level.h_acc
         return bound(f.gnss_pos_sigma_m, ACC_CAP * f.gnss_pos_sigma_m,
-                     None if h is None else f.gnss_pos_acc_fraction * h)
+                     None if h is None else f.gnss_pos_acc_fraction * h,
+                     f.gnss_pos_acc_fraction * f.gnss_h_acc_usual_max_m)
 
     def cap_vel(self) -> float:
         """The largest velocity noise a fix's own figure is taken at, m/s (receiver.bound)."""
         f = self.f
-        return bound(f.gnss_vel_sigma_mps, ACC_CAP * f.gnss_vel_sigma_mps, self.level.vel_acc)
+        return bound(f.gnss_vel_sigma_mps, ACC_CAP * f.gnss_vel_sigma_mps, self.level.vel_acc,
+                     f.gnss_vel_acc_usual_max_mps)
+
+    def beyond_usual(self) -> str | None:
+        """What to say of a receiver whose usual figures have passed the most its tuned vehicle's are
+        believed to be (`gnss_h_acc_usual_max_m`, `gnss_vel_acc_usual_max_mps`, from guard tune): its
+        figures are taken up to LEVEL_FACTOR times that most, no further (None: nothing to say). The
+        monitor says it once."""
+        f, level, parts = self.f, self.level, []
+        if f.gnss_vel_acc_usual_max_mps > 0.0 and level.vel_acc and level.vel_acc > f.gnss_vel_acc_usual_max_mps \
+                and f.use_gnss_velocity:
+            parts.append(f"its velocity good to {level.vel_acc:.2f} m/s (gnss_vel_acc_usual_max_mps "
+                         f"{f.gnss_vel_acc_usual_max_mps:g})")
+        if f.gnss_h_acc_usual_max_m > 0.0 and level.h_acc and level.h_acc > f.gnss_h_acc_usual_max_m:
+            parts.append(f"its position good to {level.h_acc:.1f} m (gnss_h_acc_usual_max_m "
+                         f"{f.gnss_h_acc_usual_max_m:g})")
+        if not parts:
+            return None
+        return (f"the receiver usually reports {' and '.join(parts)}, more than guard tune believes of this "
+                "vehicle (twice the worst of its clean logs): its figures are taken only that far, so it may "
+                "alarm; a receiver whose claims creep up may be one being readied for a spoof, or one that has "
+                "fewer satellites than it ever had in its clean logs")
 
     def poor_as_usual(self) -> str | None:
         """What to say of a receiver whose usual figures take it past the fixed bound (ACC_CAP times the

@@ -18,7 +18,11 @@ its word from the start. What it costs, and what it does not:
   stirs, for more than half the window before the median moves;
 - a spoofer who raises the claimed error slowly, before he moves anything, raises the bound with it,
   up to LEVEL_MAX times the floors; the monitor says so (a WARNING once the bound passes the fixed
-  one), so that an operator whose receiver is good hears of it;
+  one), so that an operator whose receiver is good hears of it. On a vehicle that `guard tune` has
+  seen, the usual figure is believed only up to USUAL_MARGIN times the worst its clean logs showed
+  (`gnss_h_acc_usual_max_m`, `gnss_vel_acc_usual_max_mps`, written by tune: `UsualWorst`): a
+  receiver good to 0.1 m/s in every clean flight is never taken at more than the fixed bound,
+  however slowly its claims creep up, and a usual figure past that is said (a WARNING) instead;
 - a receiver that is poor is tested as poor: its attacks must be that much larger to be seen, and
   the WARNING says so.
 
@@ -36,6 +40,9 @@ LEVEL_WINDOW_S = 120.0  # s of calm fixes whose median is the receiver's usual f
 LEVEL_FACTOR = 1.5      # a fix's figure is taken up to this many times the usual (real receivers' reports
                         # vary by 1.25 at the 90th percentile, 1.55 at most, about their median in a flight)
 LEVEL_MAX = 50.0        # ... and never beyond this many times the floor (3 m/s; a position good to 44 m)
+USUAL_MARGIN = 2.0      # guard tune believes a usual figure up to this many times its clean logs' worst (a
+                        # day with fewer satellites: a real octocopter's usual vel_acc went from 1.1 to 2.8
+                        # m/s between two flights five minutes apart)
 
 
 class ReceiverLevel:
@@ -62,9 +69,44 @@ class ReceiverLevel:
         self.vel_acc = statistics.median(v for _, v in self._v) if self._v else None
 
 
-def bound(floor: float, fixed: float, usual: float | None) -> float:
+class UsualWorst:
+    """The worst usual figures of a receiver over a log (guard tune): the largest of ReceiverLevel's
+    medians once its window spans half of LEVEL_WINDOW_S (the first fixes of a receiver still
+    settling are no usual figure), or the log's own median where it is shorter than that. h_acc (m),
+    vel_acc (m/s), None where the receiver reported none."""
+
+    def __init__(self):
+        self.level = ReceiverLevel()
+        self.h_acc: float | None = None
+        self.vel_acc: float | None = None
+        self._first: int | None = None
+
+    def hear(self, fix: GnssFix) -> None:
+        if not fix.fix_ok:
+            return
+        if self._first is None or fix.t_us < self._first:       # a start, or a reboot
+            self._first = fix.t_us
+        self.level.hear(fix, True)
+        if fix.t_us - self._first >= LEVEL_WINDOW_S / 2 * 1e6:
+            self.h_acc = _larger(self.h_acc, self.level.h_acc)
+            self.vel_acc = _larger(self.vel_acc, self.level.vel_acc)
+
+    def worst(self) -> tuple[float | None, float | None]:
+        """(h_acc, vel_acc): the worst usual figures, or the last medians for a short log."""
+        return (self.h_acc if self.h_acc is not None else self.level.h_acc,
+                self.vel_acc if self.vel_acc is not None else self.level.vel_acc)
+
+
+def _larger(a: float | None, b: float | None) -> float | None:
+    return b if a is None else a if b is None else max(a, b)
+
+
+def bound(floor: float, fixed: float, usual: float | None, usual_max: float = 0.0) -> float:
     """The largest noise a fix's own figure is taken at: the fixed bound, or LEVEL_FACTOR times the
-    receiver's usual figure (already in noise units), whichever is larger, up to LEVEL_MAX floors."""
+    receiver's usual figure (already in noise units), whichever is larger, up to LEVEL_MAX floors.
+    `usual_max` (noise units; 0: none), what a tuned vehicle's usual figure is believed up to."""
     if usual is None:
         return fixed
+    if usual_max > 0.0:
+        usual = min(usual, usual_max)
     return max(fixed, min(LEVEL_FACTOR * usual, LEVEL_MAX * floor))

@@ -1,0 +1,121 @@
+"""What a tuned vehicle's receiver is believed to usually be (guard.core.aiding.receiver, `UsualWorst`,
+`gnss_h_acc_usual_max_m`, `gnss_vel_acc_usual_max_mps`): a spoofer who raises the receiver's claimed
+error slowly, then moves it, blunts the tests of an untuned vehicle and not of a tuned one."""
+
+import dataclasses
+
+import pytest
+
+from guard.core.aiding.receiver import LEVEL_FACTOR, LEVEL_WINDOW_S, UsualWorst, bound
+from guard.core.ekf import FilterConfig
+from guard.core.monitor import MonitorConfig
+from guard.model.events import Alarm, Notice
+from guard.model.samples import GnssFix
+from guard.runtime.tune import Figures, usual_max
+from unit.synthetic import T0_US, drive, of, run
+
+SPOOF_AT_S = 330.0
+BEYOND = "more than guard tune believes of this vehicle"
+
+
+def claim(t: float) -> float:
+    """The receiver's claimed velocity accuracy: 0.1 m/s, creeping up to 3 m/s from minute 1 to 5."""
+    return 0.1 if t < 60.0 else min(3.0, 0.1 + 2.9 * (t - 60.0) / 240.0)
+
+
+def creeping(seed: int) -> list:
+    """A receiver good to 0.1 m/s whose claim creeps up (claim) while nothing else moves, then at
+    SPOOF_AT_S its velocity is pulled 2 m/s north."""
+    samples = drive(SPOOF_AT_S + 20.0, seed=seed,
+                    vel_offset=lambda t: (0.0, 2.0 if t >= SPOOF_AT_S else 0.0))
+    return [dataclasses.replace(s, vel_acc_mps=claim((s.t_us - T0_US) / 1e6)) if isinstance(s, GnssFix) else s
+            for s in samples]
+
+
+def first_alarm_after_spoof(events):
+    onset = T0_US + int(SPOOF_AT_S * 1e6)
+    alarms = [a for a in of(events, Alarm) if a.t_us >= onset]
+    return (alarms[0], onset) if alarms else (None, onset)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_a_slow_claim_then_a_spoof_is_caught_on_a_tuned_vehicle_and_missed_on_an_untuned_one(seed):
+    samples = creeping(seed)
+    # untuned: the bound follows the claim up (1.5 times its usual median, up to 50 floors), the spoof
+    # sits inside it
+    mon, events = run(samples)
+    alarm, onset = first_alarm_after_spoof(events)
+    assert alarm is None or alarm.t_us - onset > 2_000_000, alarm
+    assert mon.gnss_aid.cap_vel() > 1.5
+    # tuned: this receiver's usual vel_acc believed up to 0.2 m/s; the cap stays the fixed one
+    tuned = MonitorConfig(declination_deg=0.0, filter=FilterConfig(gnss_vel_acc_usual_max_mps=0.2))
+    mon, events = run(samples, tuned)
+    alarm, onset = first_alarm_after_spoof(events)
+    assert alarm is not None and alarm.sensor.startswith("gnss") and alarm.t_us - onset < 2_000_000, alarm
+    assert mon.gnss_aid.cap_vel() == pytest.approx(0.6)
+    told = [n for n in of(events, Notice) if BEYOND in n.text]
+    assert len(told) == 1 and told[0].level == "warning" and told[0].t_us < onset, [n.text for n in of(events, Notice)]
+    assert "gnss_vel_acc_usual_max_mps 0.2" in told[0].text
+    assert not [a for a in of(events, Alarm) if a.t_us < onset], "the creeping claim alone raises no alarm"
+
+
+def test_a_tuned_receiver_within_what_it_usually_says_is_neither_told_nor_capped():
+    """A receiver poor all along (1.2 m/s, reported) on a vehicle tuned to it (usual up to 2.4 m/s): as
+    untuned, it is taken at its word, quiet, and nothing is said of the tuned ceiling."""
+    samples = drive(150.0, seed=4, vel_noise=1.2, vel_acc=1.2)
+    tuned = MonitorConfig(declination_deg=0.0, filter=FilterConfig(gnss_vel_acc_usual_max_mps=2.4))
+    mon, events = run(samples, tuned)
+    assert not of(events, Alarm)
+    assert not [n for n in of(events, Notice) if BEYOND in n.text]
+    assert mon.gnss_aid.cap_vel() == pytest.approx(LEVEL_FACTOR * mon.gnss_aid.level.vel_acc)
+
+
+def test_the_bound_takes_the_usual_figure_up_to_the_tuned_most():
+    assert bound(0.06, 0.6, 1.0) == pytest.approx(1.5)
+    assert bound(0.06, 0.6, 1.0, usual_max=0.8) == pytest.approx(1.2)
+    assert bound(0.06, 0.6, 1.0, usual_max=0.2) == pytest.approx(0.6)       # never under the fixed bound
+    assert bound(0.06, 0.6, 10.0, usual_max=20.0) == pytest.approx(3.0)     # nor over 50 floors
+    assert bound(0.06, 0.6, None, usual_max=0.2) == pytest.approx(0.6)
+
+
+def fix(t_s: float, h: float | None, v: float | None, ok: bool = True) -> GnssFix:
+    return GnssFix(T0_US + int(t_s * 1e6), ok, 47.0, 8.0, 400.0, 0.0, 0.0, h, v)
+
+
+def test_the_worst_usual_figure_leaves_out_a_receiver_settling_and_survives_a_reboot():
+    """A receiver that starts at 5 m and settles to 1 m in 30 s, then reports 1 m (0.2 m/s) for five
+    minutes with a minute at 1.6 m (0.4 m/s): the worst usual figure is the minute's median in the
+    window, not the settling. After a reboot (time back to 0) a shorter second log at 0.9 m counts
+    only where it is worse."""
+    w = UsualWorst()
+    for i in range(0, 3600):            # 10 Hz, 6 minutes
+        t = i / 10
+        settling = 5.0 - 4.0 * t / 30.0 if t < 30.0 else None
+        poor = 200.0 <= t < 320.0
+        h = settling or (1.6 if poor else 1.0)
+        w.hear(fix(t, h, 0.4 if poor else 0.2))
+    h, v = w.worst()
+    assert h == pytest.approx(1.6) and v == pytest.approx(0.4)
+    assert w.level.h_acc is not None
+    for i in range(0, 300):             # a reboot: time back to the start
+        w.hear(fix(i / 10, 0.9, 0.1))
+    assert w.worst() == (pytest.approx(1.6), pytest.approx(0.4))
+
+
+def test_a_short_log_gives_its_median_and_a_silent_receiver_nothing():
+    short = UsualWorst()
+    for i in range(200):                # 20 s: shorter than half the window
+        short.hear(fix(i / 10, 0.7, 0.15))
+    short.hear(fix(20.0, 9.0, 9.0, ok=False))      # a lost fix is no figure
+    assert short.worst() == (pytest.approx(0.7), pytest.approx(0.15))
+    silent = UsualWorst()
+    for i in range(int(LEVEL_WINDOW_S * 10)):
+        silent.hear(fix(i / 10, None, None))
+    assert silent.worst() == (None, None)
+    # guard tune's keys: twice the worst, each only where some log reported it
+    figs = [Figures(), Figures(), Figures()]
+    figs[0].worst, figs[1].worst, figs[2].worst = short, silent, UsualWorst()
+    for i in range(200):
+        figs[2].on_sample(fix(i / 10, 1.1, None))
+    assert usual_max(figs) == {"gnss_h_acc_usual_max_m": 2.2, "gnss_vel_acc_usual_max_mps": 0.3}
+    assert usual_max([figs[1]]) == {}
