@@ -20,7 +20,9 @@ has no start, and its stop's line is VIB_FLOOR / 2.
 From each start or stop, for OPEN_S, the compass's offset b_psi is a faster random walk (Q_OPEN,
 its variance capped at P_OPEN_MAX), so that the offset the current turns the compass by is learnt
 as an offset, the heading held by the gyro (guard.core.monitor), and how far it turned is said when the
-window closes (a WARNING from MOTORS_SAY_DEG: a compassmot calibration's work). A fast change of the compass (a
+window closes (a WARNING from MOTORS_SAY_DEG: a compassmot calibration's work; beyond CURRENT_MAX_DEG, more
+than a current does, said as such: a real copter's hard flight that the 2D model could not hold
+turned its learnt offset 101 degrees in one window). A fast change of the compass (a
 step of tens of degrees within a fusion) still alarms; one laid in over seconds is learnt.
 
 What it costs: an attacker who turns the compass slowly within OPEN_S of a motor start or stop
@@ -47,6 +49,8 @@ OPEN_S = 20.0           # s from a start or stop during which the compass's offs
 Q_OPEN = 0.2            # rad/sqrt(s), its random walk then (11 degrees in a second)
 P_OPEN_MAX = 0.5 ** 2   # rad^2, the most its variance grows to then (29 degrees, 1 sigma)
 MOTORS_SAY_DEG = 10.0   # degrees the compass turned in the window that are a WARNING (less: INFO)
+CURRENT_MAX_DEG = 45.0  # degrees beyond which a turn is more than the motors' current makes (the real
+                        # flights: 5 to 39), and is said as what else it may be
 
 
 class MotorWatch:
@@ -85,9 +89,13 @@ class MotorWatch:
         self.moved += math.remainder(float(ekf.x[BM]) - b0, math.tau)
         turn = -math.degrees(math.remainder(float(ekf.x[BM]) - b0, math.tau))     # clockwise, as a compass reads
         big = abs(turn) >= MOTORS_SAY_DEG
+        why = "" if not big else (": their current's field; a compassmot calibration takes it out"
+                                  if abs(turn) <= CURRENT_MAX_DEG else
+                                  f": more than a motors' current turns a compass (up to about {CURRENT_MAX_DEG:g} "
+                                  "deg): a compass that failed or was attacked, or a manoeuvre the filter's heading "
+                                  "could not follow (in the window the heading rested on the gyro alone)")
         return [Notice(t_us, "warning" if big else "info", f"the compass turned {turn:+.1f} deg in the {OPEN_S:g} s "
-                       f"after the motors {what} (learnt as its offset)" +
-                       (": their current's field; a compassmot calibration takes it out" if big else ""))]
+                       f"after the motors {what} (learnt as its offset)" + why)]
 
     def add(self, t_us: int, level: float | None) -> str | None:
         """One IMU sample's vibration level (None while unknown): "start", "stop" or None."""
