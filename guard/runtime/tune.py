@@ -14,7 +14,9 @@ when the model fits. From logs without an attack, guard tune fits, in this order
    or receiver sits well inside its model sample by sample while its mean over a second wanders,
    and a CUSUM sums the wander: fitted to the samples alone, the noise came out smaller and the
    same logs raised more alarms with the profile than without it). On wheels the sideways
-   constraint, tested with the accelerometer, is fitted apart (`lateral_sigma_mps`). A fix whose
+   constraint, tested with the accelerometer, is fitted apart (`lateral_sigma_mps`). The position's
+   wander is fitted apart too, as the random walk by which the filter follows the receiver's slow
+   error (`q_pos_m`, `position_walk`), its floor to the samples' spread alone. A fix whose
    course the receiver held is left out (Innovation.modelled): its innovation is the held course's
    error, the same fix after fix, not the receiver's noise (taken in, it read as a wander, and a slow
    car's receiver's velocity floor came out over three times its own);
@@ -67,6 +69,7 @@ from guard.sinks.base import Sink
 DELAYS = (0.0, 0.05, 0.1, 0.15, 0.2, 0.25)
 MARGIN = 1.25           # the fitted noise is this much above what the logs show
 BOUNDS = (0.5, 20.0)    # a floor is scaled within these factors of its default
+Q_POS_BOUNDS = (1.0, 20.0)   # and the position's random walk within these (position_walk)
 PASSES = 3
 MIN_BLOCKS = 10         # block means (times channels) before the wander is taken
 NEAR = 0.7              # a tuning log's test this near its threshold, on a sensor the model does not fit
@@ -127,13 +130,18 @@ class Innovations(Sink):
     def factor(self, sensor: Sensor) -> float | None:
         """The innovations' standard deviation over the model's: the samples', or their wander's
         where that is larger (over at least MIN_BLOCKS blocks)."""
+        spread = self.spread(sensor)
+        return None if spread is None else max(spread)
+
+    def spread(self, sensor: Sensor) -> tuple[float, float] | None:
+        """(the samples' standard deviation, their wander's) over the model's; the wander 0 over fewer
+        than MIN_BLOCKS blocks. None over fewer than 50 samples."""
         n = self.n.get(sensor, 0)
         if n < 50:
             return None
-        per_sample = self.sum[sensor] / n
         blocks = self.blocks.get(sensor, 0)
         wander = self.wander[sensor] / blocks if blocks >= MIN_BLOCKS else 0.0
-        return math.sqrt(max(per_sample, wander))
+        return math.sqrt(self.sum[sensor] / n), math.sqrt(wander)
 
 
 class Figures(Sink):
@@ -156,6 +164,22 @@ def usual_max(figures: list[Figures]) -> dict[str, float]:
         if heard:
             out[key] = round(USUAL_MARGIN * max(heard), 3)
     return out
+
+
+def position_walk(spread: tuple[float, float], q_pos: float, q_default: float) -> tuple[float, float]:
+    """The position's fit: (the factor its noise floors scale by, its random walk q_pos_m). A receiver's
+    position error is mostly slow, its fix-to-fix noise small (the Erle copters' innovations: 0.3 of
+    the default floor sample by sample, 1.2 of it in their means over 40 fixes): the wander is taken
+    into the random walk the filter follows it by (raised by the wander's factor times MARGIN,
+    squared, as a walk's variance grows with q^2; within Q_POS_BOUNDS of the default, never lowered)
+    and the floor is scaled to the samples' spread alone. Taken into the floor, as the other sensors'
+    wander is, it blunted every position test: a 5 m step written into 7 held-out Erle flights was
+    caught in 3 of 21 runs with their profile, against 19 with the defaults (README, "Real flights
+    never tuned on")."""
+    per_sample, wander = spread
+    lo, hi = (q_default * b for b in Q_POS_BOUNDS)
+    q = min(max(q_pos * max(1.0, wander * MARGIN) ** 2, lo), hi)
+    return per_sample, q
 
 
 def with_filter(cfg: Config, **changes) -> Config:
@@ -232,6 +256,9 @@ def tune(logs: list[str], base: Config, say: Callable[[str], None] = print) -> t
             f = sink.factor(sensor)
             if f is None:
                 continue
+            if sensor == Sensor.GNSS_POS:
+                f, changes["q_pos_m"] = position_walk(sink.spread(sensor), cfg.monitor.filter.q_pos_m,
+                                                      defaults.q_pos_m)
             for key in keys:
                 lo, hi = (getattr(defaults, key) * b for b in BOUNDS)
                 changes[key] = min(max(getattr(cfg.monitor.filter, key) * f * MARGIN, lo), hi)
