@@ -163,18 +163,25 @@ class ImuNoise:
     def vibration(self) -> float | None:
         """The accelerometers' short noise (m/s^2, the larger axis's), None until both are known: what
         guard.core.aiding.motors hears the motors by."""
-        x, y = self.short[0], self.short[1]
-        if len(x) < NOISE_SHORT or len(y) < NOISE_SHORT:
+        x, y = self._short_median(0), self._short_median(1)
+        if x is None or y is None:
             return None
-        return math.sqrt(max(sorted(x)[NOISE_SHORT // 2], sorted(y)[NOISE_SHORT // 2]))
+        return math.sqrt(max(x, y))
+
+    def _short_median(self, i: int) -> float | None:
+        """The short memory's variance of one channel (the median of its last NOISE_SHORT), None
+        until it holds that many."""
+        q = self.short[i]
+        return sorted(q)[NOISE_SHORT // 2] if len(q) == NOISE_SHORT else None
 
     def sigmas(self, floors: tuple[float, float, float, float], n: int) -> list[float]:
         """The noise of a mean of n samples: each reading's (the larger memory's), within [floor,
         NOISE_CAP * floor]."""
         out = []
-        for f, v, q in zip(floors, self.var, self.short):
-            if len(q) == NOISE_SHORT:
-                v = max(v, sorted(q)[NOISE_SHORT // 2])
+        for i, (f, v) in enumerate(zip(floors, self.var)):
+            short = self._short_median(i)
+            if short is not None:
+                v = max(v, short)
             out.append(min(max(f, math.sqrt(v / n)), NOISE_CAP * f))
         return out
 
