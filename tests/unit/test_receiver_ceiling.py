@@ -45,7 +45,7 @@ def test_a_slow_claim_then_a_spoof_is_caught_on_a_tuned_vehicle_and_missed_on_an
     # sits inside it
     mon, events = run(samples)
     alarm, onset = first_alarm_after_spoof(events)
-    assert alarm is None or alarm.t_us - onset > 2_000_000, alarm
+    assert alarm is None, alarm                     # not in the 20 s after the spoof
     assert mon.gnss_aid.cap_vel() > 1.5
     # tuned: this receiver's usual vel_acc believed up to 0.2 m/s; the cap stays the fixed one
     tuned = MonitorConfig(declination_deg=0.0, filter=FilterConfig(gnss_vel_acc_usual_max_mps=0.2))
@@ -82,24 +82,48 @@ def fix(t_s: float, h: float | None, v: float | None, ok: bool = True) -> GnssFi
     return GnssFix(T0_US + int(t_s * 1e6), ok, 47.0, 8.0, 400.0, 0.0, 0.0, h, v)
 
 
-def test_the_worst_usual_figure_leaves_out_a_receiver_settling_and_survives_a_reboot():
-    """A receiver that starts at 5 m and settles to 1 m in 30 s, then reports 1 m (0.2 m/s) for five
-    minutes with a minute at 1.6 m (0.4 m/s): the worst usual figure is the minute's median in the
-    window, not the settling. After a reboot (time back to 0) a shorter second log at 0.9 m counts
-    only where it is worse."""
+def test_the_worst_usual_figure_leaves_out_a_receiver_settling_after_a_start_a_reboot_or_a_gap():
+    """A receiver that starts at 5 m and settles to 1 m in 30 s, then reports 1 m (0.2 m/s) with a
+    two-minute spell at 1.6 m (0.4 m/s): the worst usual figure is the spell's median, not the
+    settling. After a reboot (time back, the new log starting later than the first did) and after a
+    200 s gap, the receiver settles from 5 m again: not counted. A second log that is worse once
+    settled counts."""
+    def log(w, t0, t1, figures):
+        for i in range(int(t0 * 10), int(t1 * 10)):
+            w.hear(fix(i / 10, *figures(i / 10 - t0)))
+
+    def settling_then(h, v):
+        return lambda t: (5.0 - 4.0 * t / 30.0, 0.8) if t < 30.0 else (h, v)
+
     w = UsualWorst()
-    for i in range(0, 3600):            # 10 Hz, 6 minutes
-        t = i / 10
-        settling = 5.0 - 4.0 * t / 30.0 if t < 30.0 else None
-        poor = 200.0 <= t < 320.0
-        h = settling or (1.6 if poor else 1.0)
-        w.hear(fix(t, h, 0.4 if poor else 0.2))
-    h, v = w.worst()
-    assert h == pytest.approx(1.6) and v == pytest.approx(0.4)
-    assert w.level.h_acc is not None
-    for i in range(0, 300):             # a reboot: time back to the start
-        w.hear(fix(i / 10, 0.9, 0.1))
+    log(w, 20.0, 380.0, lambda t: (1.6, 0.4) if 180.0 <= t < 300.0 else settling_then(1.0, 0.2)(t))
     assert w.worst() == (pytest.approx(1.6), pytest.approx(0.4))
+    log(w, 30.0, 230.0, settling_then(1.0, 0.2))          # a reboot: time back, later than the first start
+    log(w, 430.0, 630.0, settling_then(1.0, 0.2))         # a gap of 200 s
+    assert w.worst() == (pytest.approx(1.6), pytest.approx(0.4))
+    log(w, 0.0, 200.0, settling_then(2.1, 0.5))           # a reboot into a poorer sky
+    assert w.worst() == (pytest.approx(2.1), pytest.approx(0.5))
+
+
+def test_a_tuned_receiver_settling_after_power_on_is_not_said_to_be_beyond_its_most():
+    """A tuned receiver (usual h_acc up to 2 m, vel_acc 0.4 m/s) that settles from 4.5 m and 0.8 m/s
+    to 1 m and 0.2 m/s over its first 40 s: nothing said of its tuned most (its first fixes are no
+    usual figure, as they are not to guard tune); the same receiver settling to 3 m and 0.6 m/s is
+    said to be beyond it, once, after its figures have settled."""
+    def settling(h, v):
+        return lambda t: (4.5 + (h - 4.5) * min(t / 40.0, 1.0), 0.8 + (v - 0.8) * min(t / 40.0, 1.0))
+
+    tuned = MonitorConfig(declination_deg=0.0, filter=FilterConfig(gnss_h_acc_usual_max_m=2.0,
+                                                                   gnss_vel_acc_usual_max_mps=0.4))
+    for (h, v), said in (((1.0, 0.2), 0), ((3.0, 0.6), 1)):
+        figures = settling(h, v)
+        samples = [dataclasses.replace(s, h_acc_m=figures((s.t_us - T0_US) / 1e6)[0],
+                                       vel_acc_mps=figures((s.t_us - T0_US) / 1e6)[1])
+                   if isinstance(s, GnssFix) else s for s in drive(200.0, seed=6)]
+        _, events = run(samples, tuned)
+        told = [n for n in of(events, Notice) if BEYOND in n.text]
+        assert len(told) == said, [n.text for n in told]
+        assert all(n.t_us - T0_US >= 60e6 for n in told), told
 
 
 def test_a_short_log_gives_its_median_and_a_silent_receiver_nothing():

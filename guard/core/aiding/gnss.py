@@ -118,11 +118,12 @@ class GnssAiding:
         figures are taken up to LEVEL_FACTOR times that most, no further (None: nothing to say). The
         monitor says it once."""
         f, level, parts = self.f, self.level, []
-        if f.gnss_vel_acc_usual_max_mps > 0.0 and level.vel_acc and level.vel_acc > f.gnss_vel_acc_usual_max_mps \
+        h_settled, v_settled = level.settled()     # a receiver settling after power-on is not compared yet
+        if f.gnss_vel_acc_usual_max_mps > 0.0 and v_settled and level.vel_acc > f.gnss_vel_acc_usual_max_mps \
                 and f.use_gnss_velocity:
             parts.append(f"its velocity good to {level.vel_acc:.2f} m/s (gnss_vel_acc_usual_max_mps "
                          f"{f.gnss_vel_acc_usual_max_mps:g})")
-        if f.gnss_h_acc_usual_max_m > 0.0 and level.h_acc and level.h_acc > f.gnss_h_acc_usual_max_m:
+        if f.gnss_h_acc_usual_max_m > 0.0 and h_settled and level.h_acc > f.gnss_h_acc_usual_max_m:
             parts.append(f"its position good to {level.h_acc:.1f} m (gnss_h_acc_usual_max_m "
                          f"{f.gnss_h_acc_usual_max_m:g})")
         if not parts:
@@ -137,9 +138,9 @@ class GnssAiding:
         floors): its tests are that much blunter (None: nothing to say). The monitor says it once."""
         f, parts = self.f, []
         if self.cap_vel() > ACC_CAP * f.gnss_vel_sigma_mps and f.use_gnss_velocity:
-            parts.append(f"its velocity good to {self.level.vel_acc:.2f} m/s")
+            parts.append(f"its velocity good to {_taken(self.level.vel_acc, f.gnss_vel_acc_usual_max_mps):.2f} m/s")
         if self.cap_pos() > ACC_CAP * f.gnss_pos_sigma_m:
-            parts.append(f"its position good to {self.level.h_acc:.1f} m")
+            parts.append(f"its position good to {_taken(self.level.h_acc, f.gnss_h_acc_usual_max_m):.1f} m")
         if not parts:
             return None
         return (f"the receiver usually reports {' and '.join(parts)} (its median over up to "
@@ -322,3 +323,8 @@ class FreezeWatch:
         if not repeated or speed_mps < self.freeze_speed_mps:
             return None
         return Alarm(fix.t_us, gnss_index, Sensor.GNSS_POS, "frozen", speed_mps, self.freeze_speed_mps, 0.0, "freeze")
+
+
+def _taken(usual: float, most: float) -> float:
+    """A usual figure as far as it is believed: up to the tuned most (0: no most)."""
+    return min(usual, most) if most > 0.0 else usual

@@ -93,7 +93,7 @@ class MotorWatch:
                                   if abs(turn) <= CURRENT_MAX_DEG else
                                   f": more than a motors' current turns a compass (up to about {CURRENT_MAX_DEG:g} "
                                   "deg): a compass that failed or was attacked, or a manoeuvre the filter's heading "
-                                  "could not follow (in the window the heading rested on the gyro alone)")
+                                  "could not follow (in the window the compass held the heading little)")
         return [Notice(t_us, "warning" if big else "info", f"the compass turned {turn:+.1f} deg in the {OPEN_S:g} s "
                        f"after the motors {what} (learnt as its offset)" + why)]
 

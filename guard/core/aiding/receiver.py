@@ -41,8 +41,10 @@ LEVEL_FACTOR = 1.5      # a fix's figure is taken up to this many times the usua
                         # vary by 1.25 at the 90th percentile, 1.55 at most, about their median in a flight)
 LEVEL_MAX = 50.0        # ... and never beyond this many times the floor (3 m/s; a position good to 44 m)
 USUAL_MARGIN = 2.0      # guard tune believes a usual figure up to this many times its clean logs' worst (a
-                        # day with fewer satellites: a real octocopter's usual vel_acc went from 1.1 to 2.8
-                        # m/s between two flights five minutes apart)
+                        # day with fewer satellites: the worst usual vel_acc of one vehicle's flights varied
+                        # by up to 1.7 times between them on the README's real flights)
+SETTLED_S = LEVEL_WINDOW_S / 2   # s of fixes a usual figure is taken over before it is compared with the
+                                 # tuned most (a receiver settling after power-on reports metres at first)
 
 
 class ReceiverLevel:
@@ -68,27 +70,32 @@ class ReceiverLevel:
         self.h_acc = statistics.median(v for _, v in self._h) if self._h else None
         self.vel_acc = statistics.median(v for _, v in self._v) if self._v else None
 
+    def settled(self) -> tuple[bool, bool]:
+        """Whether the h_acc and the vel_acc medians are each over at least SETTLED_S of fixes (a start,
+        a reboot or a long gap starts the span over): a receiver still settling is no usual figure."""
+        return tuple(bool(w) and w[-1][0] - w[0][0] >= SETTLED_S * 1e6 for w in (self._h, self._v))
+
 
 class UsualWorst:
     """The worst usual figures of a receiver over a log (guard tune): the largest of ReceiverLevel's
-    medians once its window spans half of LEVEL_WINDOW_S (the first fixes of a receiver still
-    settling are no usual figure), or the log's own median where it is shorter than that. h_acc (m),
-    vel_acc (m/s), None where the receiver reported none."""
+    medians once settled (its window over SETTLED_S of fixes: the first fixes of a receiver still
+    settling, after a start, a reboot or a long gap, are no usual figure; the monitor compares its own
+    usual figure with the tuned most by the same rule), or the log's last median where it never
+    settled. h_acc (m), vel_acc (m/s), None where the receiver reported none."""
 
     def __init__(self):
         self.level = ReceiverLevel()
         self.h_acc: float | None = None
         self.vel_acc: float | None = None
-        self._first: int | None = None
 
     def hear(self, fix: GnssFix) -> None:
         if not fix.fix_ok:
             return
-        if self._first is None or fix.t_us < self._first:       # a start, or a reboot
-            self._first = fix.t_us
         self.level.hear(fix, True)
-        if fix.t_us - self._first >= LEVEL_WINDOW_S / 2 * 1e6:
+        h_settled, v_settled = self.level.settled()
+        if h_settled:
             self.h_acc = _larger(self.h_acc, self.level.h_acc)
+        if v_settled:
             self.vel_acc = _larger(self.vel_acc, self.level.vel_acc)
 
     def worst(self) -> tuple[float | None, float | None]:
