@@ -67,8 +67,9 @@ def test_the_position_s_wander_is_a_random_walk_and_a_step_is_still_caught(drive
 
 def test_the_walk_is_raised_by_the_wander_only_and_within_its_bounds():
     q = tune_module.position_walk
-    assert q((0.3, 1.2), 0.1, 0.1) == (0.3, pytest.approx(0.1 * (1.2 * tune_module.MARGIN) ** 2))
+    assert q((0.3, 1.2), 0.1, 0.1) == (0.3, pytest.approx(0.1 * 1.2 ** 2))
     assert q((0.9, 0.5), 0.1, 0.1) == (0.9, 0.1)                  # no wander to follow: the default stays
+    assert q((0.9, 1.0), 0.1, 0.1) == (0.9, 0.1)                  # nor one the model holds
     assert q((0.9, 0.5), 0.3, 0.1) == (0.9, 0.3)                  # and what an earlier pass raised stays
     assert q((0.9, 0.5), 0.05, 0.1) == (0.9, 0.05)                # nor a walk set lower than the default
     # beyond its bound, the walk is held there and the wander it cannot take goes into the floor
