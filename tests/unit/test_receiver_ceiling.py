@@ -14,13 +14,13 @@ from guard.model.samples import GnssFix
 from guard.runtime.tune import Figures, usual_max
 from unit.synthetic import T0_US, drive, of, run
 
-SPOOF_AT_S = 330.0
+SPOOF_AT_S = 200.0
 BEYOND = "more than guard tune believes of this vehicle"
 
 
 def claim(t: float) -> float:
-    """The receiver's claimed velocity accuracy: 0.1 m/s, creeping up to 3 m/s from minute 1 to 5."""
-    return 0.1 if t < 60.0 else min(3.0, 0.1 + 2.9 * (t - 60.0) / 240.0)
+    """The receiver's claimed velocity accuracy: 0.1 m/s, creeping up to 3 m/s from 30 s to 150 s."""
+    return 0.1 if t < 30.0 else min(3.0, 0.1 + 2.9 * (t - 30.0) / 120.0)
 
 
 def creeping(seed: int) -> list:
