@@ -70,7 +70,7 @@ from guard.sinks.base import Sink
 DELAYS = (0.0, 0.05, 0.1, 0.15, 0.2, 0.25)
 MARGIN = 1.25           # the fitted noise is this much above what the logs show
 BOUNDS = (0.5, 20.0)    # a floor is scaled within these factors of its default
-Q_POS_BOUNDS = (1.0, 20.0)   # and the position's random walk within these of its own (position_walk)
+Q_POS_MAX = 20.0        # the position's random walk is raised up to this many times its default (position_walk)
 PASSES = 3
 MIN_BLOCKS = 10         # block means (times channels) before the wander is taken
 NEAR = 0.7              # a tuning log's test this near its threshold, on a sensor the model does not fit
@@ -176,14 +176,14 @@ def position_walk(spread: tuple[float, float], q_pos: float, q_default: float) -
     1 / sqrt(q) (measured on those copters: q times 2.2, their wander 1.19 -> 0.79). Without MARGIN:
     the floor keeps its margin, and a walk raised past the wander follows a ramp as well (with the
     margin, 0.22 against 0.16 here, the held-out flights' 1 m/s ramp was caught in 15 of 21 runs
-    against 18, for the same alarms). It is never lowered (a wander within the model leaves it) and goes up to
-    Q_POS_BOUNDS[1] times the default; where that bound holds it, the wander it cannot take goes into
-    the floor as before. Taken into the floor, as the other sensors' wander is, it blunted every
+    against 18, for the same alarms). It is never lowered (a wander within the model leaves it) and
+    goes up to Q_POS_MAX times the default; where that bound holds it, the wander it cannot take goes
+    into the floor as before. Taken into the floor, as the other sensors' wander is, it blunted every
     position test: a 5 m step written into 7 held-out Erle flights was caught in 3 of 21 runs with
     their profile, against 19 with the defaults (README, "Real flights never tuned on")."""
     per_sample, wander = spread
     raised = q_pos * max(1.0, wander) ** 2
-    hi = max(q_default * Q_POS_BOUNDS[1], q_pos)
+    hi = max(q_default * Q_POS_MAX, q_pos)
     if raised > hi:
         return max(per_sample, wander), hi
     return per_sample, raised

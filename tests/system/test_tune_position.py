@@ -73,4 +73,4 @@ def test_the_walk_is_raised_by_the_wander_only_and_within_its_bounds():
     assert q((0.9, 0.5), 0.3, 0.1) == (0.9, 0.3)                  # and what an earlier pass raised stays
     assert q((0.9, 0.5), 0.05, 0.1) == (0.9, 0.05)                # nor a walk set lower than the default
     # beyond its bound, the walk is held there and the wander it cannot take goes into the floor
-    assert q((0.3, 50.0), 0.1, 0.1) == (50.0, pytest.approx(0.1 * tune_module.Q_POS_BOUNDS[1]))
+    assert q((0.3, 50.0), 0.1, 0.1) == (50.0, pytest.approx(0.1 * tune_module.Q_POS_MAX))

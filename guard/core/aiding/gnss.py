@@ -38,7 +38,7 @@ import math
 import numpy as np
 
 from guard.core.aiding import Aid
-from guard.core.aiding.receiver import LEVEL_WINDOW_S, ReceiverLevel, bound
+from guard.core.aiding.receiver import LEVEL_WINDOW_S, ReceiverLevel, believed, bound
 from guard.core.ekf import N_STATES, TH, VX, VY, X, Y, FilterConfig
 from guard.model.events import Alarm
 from guard.model.samples import GnssFix
@@ -138,9 +138,9 @@ class GnssAiding:
         floors): its tests are that much blunter (None: nothing to say). The monitor says it once."""
         f, parts = self.f, []
         if self.cap_vel() > ACC_CAP * f.gnss_vel_sigma_mps and f.use_gnss_velocity:
-            parts.append(f"its velocity good to {_taken(self.level.vel_acc, f.gnss_vel_acc_usual_max_mps):.2f} m/s")
+            parts.append(f"its velocity good to {believed(self.level.vel_acc, f.gnss_vel_acc_usual_max_mps):.2f} m/s")
         if self.cap_pos() > ACC_CAP * f.gnss_pos_sigma_m:
-            parts.append(f"its position good to {_taken(self.level.h_acc, f.gnss_h_acc_usual_max_m):.1f} m")
+            parts.append(f"its position good to {believed(self.level.h_acc, f.gnss_h_acc_usual_max_m):.1f} m")
         if not parts:
             return None
         return (f"the receiver usually reports {' and '.join(parts)} (its median over up to "
@@ -324,7 +324,3 @@ class FreezeWatch:
             return None
         return Alarm(fix.t_us, gnss_index, Sensor.GNSS_POS, "frozen", speed_mps, self.freeze_speed_mps, 0.0, "freeze")
 
-
-def _taken(usual: float, most: float) -> float:
-    """A usual figure as far as it is believed: up to the tuned most (0: no most)."""
-    return min(usual, most) if most > 0.0 else usual

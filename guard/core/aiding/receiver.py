@@ -114,6 +114,9 @@ def bound(floor: float, fixed: float, usual: float | None, usual_max: float = 0.
     `usual_max` (noise units; 0: none), what a tuned vehicle's usual figure is believed up to."""
     if usual is None:
         return fixed
-    if usual_max > 0.0:
-        usual = min(usual, usual_max)
-    return max(fixed, min(LEVEL_FACTOR * usual, LEVEL_MAX * floor))
+    return max(fixed, min(LEVEL_FACTOR * believed(usual, usual_max), LEVEL_MAX * floor))
+
+
+def believed(usual: float, most: float) -> float:
+    """A usual figure as far as it is believed: up to a tuned vehicle's most (0: no most)."""
+    return min(usual, most) if most > 0.0 else usual
