@@ -3,10 +3,13 @@
 error slowly, then moves it, blunts the tests of an untuned vehicle and not of a tuned one."""
 
 import dataclasses
+import statistics
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
-from guard.core.aiding.receiver import LEVEL_FACTOR, LEVEL_WINDOW_S, UsualWorst, bound
+from guard.core.aiding.receiver import LEVEL_FACTOR, LEVEL_WINDOW_S, TimedMedian, UsualWorst, bound
 from guard.core.ekf import FilterConfig
 from guard.core.monitor import MonitorConfig
 from guard.model.events import Alarm, Notice
@@ -143,3 +146,23 @@ def test_a_short_log_gives_its_median_and_a_silent_receiver_nothing():
         figs[2].on_sample(fix(i / 10, 1.1, None))
     assert usual_max(figs) == {"gnss_h_acc_usual_max_m": 2.2, "gnss_vel_acc_usual_max_mps": 0.3}
     assert usual_max([figs[1]]) == {}
+
+
+@given(st.lists(st.tuples(st.integers(-1, 10).map(lambda s: s * 1_000_000),
+                          st.one_of(st.floats(0.01, 10.0), st.sampled_from([None, 0.0]))),
+                min_size=1, max_size=300))
+def test_the_kept_median_is_the_window_s_median(heard):
+    """TimedMedian keeps its window sorted as values come and go: at every step its median is
+    statistics.median of the values heard over the window, the window started over when time goes back."""
+    window = TimedMedian(30.0)
+    naive: list[tuple[int, float]] = []
+    t = 0
+    for dt, value in heard:
+        t += dt
+        if naive and t < naive[-1][0]:
+            naive = []
+        if value:
+            naive.append((t, value))
+        naive = [(u, v) for u, v in naive if u >= t - 30e6]
+        window.hear(t, value)
+        assert window.median() == (statistics.median(v for _, v in naive) if naive else None)

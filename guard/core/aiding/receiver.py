@@ -31,7 +31,7 @@ This file learns the figure; GnssAiding applies it and the monitor feeds it.
 
 from __future__ import annotations
 
-import statistics
+from bisect import bisect_left, insort
 from collections import deque
 
 from guard.model.samples import GnssFix
@@ -47,33 +47,61 @@ SETTLED_S = LEVEL_WINDOW_S / 2   # s of fixes a usual figure is taken over befor
                                  # tuned most (a receiver settling after power-on reports metres at first)
 
 
+class TimedMedian:
+    """The median of the values heard over the last `window_s` (statistics.median's value, kept sorted
+    as values come and go: a fix at 5 Hz would otherwise sort two minutes of them each time). A time
+    that goes back (the autopilot rebooted) starts the window over."""
+
+    def __init__(self, window_s: float):
+        self.window_us = window_s * 1e6
+        self.heard: deque[tuple[int, float]] = deque()   # (t_us, value), in time order
+        self._sorted: list[float] = []
+
+    def hear(self, t_us: int, value: float | None) -> None:
+        """`value` heard at t_us (None or 0: nothing heard, the window still moves on)."""
+        if self.heard and t_us < self.heard[-1][0]:
+            self.heard.clear()
+            self._sorted.clear()
+        if value:
+            self.heard.append((t_us, value))
+            insort(self._sorted, value)
+        while self.heard and self.heard[0][0] < t_us - self.window_us:
+            del self._sorted[bisect_left(self._sorted, self.heard.popleft()[1])]
+
+    def median(self) -> float | None:
+        n = len(self._sorted)
+        if not n:
+            return None
+        i = n // 2
+        return self._sorted[i] if n % 2 else (self._sorted[i - 1] + self._sorted[i]) / 2
+
+    def span_s(self) -> float:
+        """The time between the first and the last value in the window."""
+        return (self.heard[-1][0] - self.heard[0][0]) / 1e6 if self.heard else 0.0
+
+
 class ReceiverLevel:
     """The medians of a receiver's reported h_acc and vel_acc over its last LEVEL_WINDOW_S of calm fixes:
     h_acc (m) and vel_acc (m/s), None where none was heard."""
 
     def __init__(self):
-        self._h: deque[tuple[int, float]] = deque()     # (t_us, h_acc m)
-        self._v: deque[tuple[int, float]] = deque()     # (t_us, vel_acc m/s)
+        self._h = TimedMedian(LEVEL_WINDOW_S)
+        self._v = TimedMedian(LEVEL_WINDOW_S)
         self.h_acc: float | None = None
         self.vel_acc: float | None = None
 
     def hear(self, fix: GnssFix, calm: bool) -> None:
         """A fix the filter is about to use; its figures count towards the usual ones if calm. A time
         that goes back (the autopilot rebooted) starts the window over."""
-        for window, value in ((self._h, fix.h_acc_m), (self._v, fix.vel_acc_mps)):
-            if window and fix.t_us < window[-1][0]:
-                window.clear()
-            if calm and value:
-                window.append((fix.t_us, value))
-            while window and window[0][0] < fix.t_us - LEVEL_WINDOW_S * 1e6:
-                window.popleft()
-        self.h_acc = statistics.median(v for _, v in self._h) if self._h else None
-        self.vel_acc = statistics.median(v for _, v in self._v) if self._v else None
+        self._h.hear(fix.t_us, fix.h_acc_m if calm else None)
+        self._v.hear(fix.t_us, fix.vel_acc_mps if calm else None)
+        self.h_acc = self._h.median()
+        self.vel_acc = self._v.median()
 
     def settled(self) -> tuple[bool, bool]:
         """Whether the h_acc and the vel_acc medians are each over at least SETTLED_S of fixes (a start,
         a reboot or a long gap starts the span over): a receiver still settling is no usual figure."""
-        return tuple(bool(w) and w[-1][0] - w[0][0] >= SETTLED_S * 1e6 for w in (self._h, self._v))
+        return tuple(bool(w.heard) and w.span_s() >= SETTLED_S for w in (self._h, self._v))
 
 
 class UsualWorst:
