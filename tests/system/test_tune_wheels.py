@@ -17,16 +17,17 @@ SLIP = 0.01
 def test_on_wheels_the_sensors_place_is_learnt_and_the_constraint_fitted_apart(tmp_path):
     """Sensors 1 m ahead of the axle: tune writes where they sit (`sensors_ahead_m`). Told they sit on
     it (d held at 0), the sideways constraint, tested with the accelerometer, reads their swing: tune
-    widens the constraint (`lateral_sigma_mps`), not the accelerometer's noise."""
+    widens the constraint (`lateral_sigma_mps`), not the accelerometer's noise. Each tuned on a drive
+    of its own (two seeds): what is compared is the vehicle, not one drive's noise."""
     base = scn.load("clean")
     route = dataclasses.replace(base.route, sideslip_rad_per_mps2=SLIP, max_yaw_jerk_radps3=2.0, sensors_ahead_m=1.0)
-    paths = []
-    for seed in (1, 2):
-        paths.append(str(tmp_path / f"ahead{seed}.tlog"))
-        run(dataclasses.replace(base, duration_s=110.0, route=route), seed, tlog=paths[-1])
     held = {"p0_sensors_ahead_m": 0.0, "q_sensors_ahead_m": 0.0}
-    fitted = {name: tune(paths, parse(table, "base"), say=lambda line: None)[0]["filter"] for name, table in (
-        ("learnt", {"monitor": {"vehicle": "ground"}}), ("held", {"filter": held, "monitor": {"vehicle": "ground"}}))}
+    fitted = {}
+    for seed, (name, table) in enumerate((("learnt", {"monitor": {"vehicle": "ground"}}),
+                                          ("held", {"filter": held, "monitor": {"vehicle": "ground"}})), start=1):
+        path = str(tmp_path / f"ahead{seed}.tlog")
+        run(dataclasses.replace(base, duration_s=110.0, route=route), seed, tlog=path)
+        fitted[name] = tune([path], parse(table, "base"), say=lambda line: None)[0]["filter"]
     assert fitted["learnt"]["sensors_ahead_m"] == pytest.approx(1.0, abs=0.2)
     assert fitted["held"]["lateral_sigma_mps"] > 2 * fitted["learnt"].get("lateral_sigma_mps", 0.05), fitted
     assert fitted["held"]["accel_sigma_mps2"] == pytest.approx(fitted["learnt"]["accel_sigma_mps2"], rel=0.15)
