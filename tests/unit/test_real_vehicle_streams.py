@@ -130,7 +130,7 @@ def test_an_older_receiver_wandering_at_its_hdop_is_quiet_and_a_step_still_caugh
     read_by_hdop = mon.detector.peak["gnss_pos"]
     mon, events = run(clean, GROUND)
     assert read_by_hdop < 0.75 * mon.detector.peak["gnss_pos"], (read_by_hdop, mon.detector.peak["gnss_pos"])
-    stepped = drive(600.0, yaw=0.4, seed=seed, vel_acc=None, h_acc=None,
+    stepped = drive(310.0, yaw=0.4, seed=seed, vel_acc=None, h_acc=None,      # the same wander to 310 s
                     gnss_offset=lambda t: wander(t, 10.0 if t >= 300.0 else 0.0))
     _, events = run([dataclasses.replace(s, hdop=2.0) if isinstance(s, GnssFix) else s for s in stepped], GROUND)
     after = [a for a in of(events, Alarm) if a.t_us >= T0_US + 300_000_000]
