@@ -158,8 +158,8 @@ def _recover(args) -> int:
 
 def _tune(args) -> int:
     from guard.config import load
-    from guard.runtime.tune import tune, write_profile
-    profile, cfg = tune(args.logs, load(args.config))
+    from guard.runtime.tune import default_jobs, tune, write_profile
+    profile, cfg = tune(args.logs, load(args.config), jobs=args.jobs or default_jobs())
     write_profile(profile, args.out, args.logs, cfg)
     changed = ", ".join(f"{k} = {v:g}" for table in profile.values() for k, v in table.items()) or "nothing"
     print(f"guard tune: {args.out}: {changed}")
@@ -170,6 +170,12 @@ def _with_system_id(cfg, system_id: int | None):
     """cfg with --system-id in link.system_id, where it was given."""
     from dataclasses import replace
     return cfg if system_id is None else replace(cfg, link=replace(cfg.link, system_id=system_id))
+
+
+def positive_int(text: str) -> int:
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number of 1 or more")
+    return int(text)
 
 
 def _system_id(text: str) -> int:
@@ -257,6 +263,8 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("logs", nargs="+", help="clean logs of the vehicle (.tlog, .bin, .ulg), without an attack")
     r.add_argument("--out", default="guard-profile.toml", help="the profile to write (default: guard-profile.toml)")
     r.add_argument("--config", help="the config to start from (default: guard's defaults)")
+    r.add_argument("--jobs", type=positive_int, metavar="N",
+                   help="replay the logs on N processes (default: every core; the profile is the same)")
     r.set_defaults(func=_tune)
 
     r = command("sim", help="the simulator: a vehicle speaking MAVLink (and DroneCAN)")

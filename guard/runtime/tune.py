@@ -44,13 +44,20 @@ and, so that it works alone with --config, the settings of the config it started
 from guard's defaults (a vehicle set to "ground" changes the fit, and a file that dropped it would
 run another model than the one tuned).
 Logs that hold an attack, or a sensor fault, would teach guard to accept it: give clean ones.
+
+Each step replays every log once (the latency's, every log at every delay), about a dozen replays in
+all; they are independent, so `jobs` processes share them (`guard tune --jobs`, every core by
+default; `Replays`). The profile is the same whatever the number: each replay is the same and the
+logs' innovations are summed in the logs' order.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import tomli_w
@@ -194,15 +201,53 @@ def with_filter(cfg: Config, **changes) -> Config:
     return dataclasses.replace(cfg, monitor=dataclasses.replace(cfg.monitor, filter=flt))
 
 
-def measure(logs: list[str], cfg: Config, each: list | None = None,
-            figures: list | None = None) -> tuple[Innovations, list[dict]]:
+def replay_one(job: tuple[str, Config, bool]) -> tuple[Innovations, Figures | None, dict]:
+    """One log replayed with cfg: its innovations, its receiver's figures (if asked) and its report."""
+    log, cfg, with_figures = job
+    one, fig = Innovations(), (Figures() if with_figures else None)
+    report = replay(log, cfg, listeners=[one] if fig is None else [one, fig])
+    return one, fig, report
+
+
+def default_jobs() -> int:
+    """The cores this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+class Replays:
+    """Logs replayed in `jobs` processes (1: in this one), each replay's results in the order asked."""
+
+    def __init__(self, jobs: int = 1):
+        self.jobs = max(1, jobs)
+        self._pool: ProcessPoolExecutor | None = None
+
+    def run(self, jobs: list[tuple[str, Config, bool]]) -> list:
+        if self.jobs == 1 or len(jobs) < 2:
+            return [replay_one(j) for j in jobs]
+        if self._pool is None:
+            self._pool = ProcessPoolExecutor(self.jobs)
+        return list(self._pool.map(replay_one, jobs))
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(cancel_futures=True)
+            self._pool = None
+
+
+def measure(logs: list[str], cfg: Config, each: list | None = None, figures: list | None = None,
+            replays: Replays | None = None) -> tuple[Innovations, list[dict]]:
     """Replay every log with cfg; the innovations of all of them, and each one's report (and each
     one's innovations into `each`, its receiver's figures into `figures`, if given)."""
+    return pooled((replays or Replays()).run([(log, cfg, figures is not None) for log in logs]), each, figures)
+
+
+def pooled(results: list, each: list | None = None, figures: list | None = None) -> tuple[Innovations, list[dict]]:
+    """The logs' replays (replay_one's, in the logs' order) summed: the innovations of all of them and
+    each one's report (each one's innovations into `each`, its figures into `figures`, if given)."""
     sink, reports = Innovations(), []
     offsets, slips, aheads = [], [], []
-    for log in logs:
-        one, fig = Innovations(), Figures()
-        reports.append(replay(log, cfg, listeners=[one] if figures is None else [one, fig]))
+    for one, fig, report in results:
+        reports.append(report)
         if each is not None:
             each.append(one)
         if figures is not None:
@@ -214,7 +259,7 @@ def measure(logs: list[str], cfg: Config, each: list | None = None,
             sink.wander[s] = sink.wander.get(s, 0.0) + one.wander[s]
             sink.blocks[s] = sink.blocks.get(s, 0) + one.blocks[s]
         if one.mag_offset is not None:
-            still = reports[-1].get("compass_offset_still_rad")     # less what the motors' current turned
+            still = report.get("compass_offset_still_rad")     # less what the motors' current turned
             offsets.append(one.mag_offset if still is None else still)
             slips.append(one.slip)
             aheads.append(one.ahead)
@@ -242,22 +287,32 @@ def gnss_z2(sink: Innovations) -> float:
     return sum(sink.sum.get(s, 0.0) for s in (Sensor.GNSS_POS, Sensor.GNSS_VEL)) / max(n, 1)
 
 
-def tune(logs: list[str], base: Config, say: Callable[[str], None] = print) -> tuple[dict, Config]:
-    """The profile (section -> key -> value, what differs from base) and the tuned config."""
+def tune(logs: list[str], base: Config, say: Callable[[str], None] = print, jobs: int = 1) -> tuple[dict, Config]:
+    """The profile (section -> key -> value, what differs from base) and the tuned config; the logs
+    replayed on `jobs` processes."""
     for log in logs:
         if not Path(log).is_file():
             raise GuardError(f"{log}: no such file")
-    # 1. the receiver's latency
+    replays = Replays(min(jobs, len(logs) * len(DELAYS)))
+    try:
+        return _tune(logs, base, say, replays)
+    finally:
+        replays.close()
+
+
+def _tune(logs: list[str], base: Config, say: Callable[[str], None], replays: Replays) -> tuple[dict, Config]:
+    # 1. the receiver's latency: every delay's replays at once
+    results = replays.run([(log, with_filter(base, gnss_delay_s=delay), False) for delay in DELAYS for log in logs])
     scores = []
-    for delay in DELAYS:
-        sink, _ = measure(logs, with_filter(base, gnss_delay_s=delay))
+    for i, delay in enumerate(DELAYS):
+        sink, _ = pooled(results[i * len(logs):(i + 1) * len(logs)])
         scores.append((gnss_z2(sink), delay))
         say(f"latency {delay:.2f} s: GNSS innovations {math.sqrt(scores[-1][0]):.2f}x the model")
     cfg = with_filter(base, gnss_delay_s=min(scores)[1])
     # 2. each sensor's noise
     defaults = FilterConfig()
     for _ in range(PASSES):
-        sink, _ = measure(logs, cfg)
+        sink, _ = measure(logs, cfg, replays=replays)
         changes = {}
         for sensor, keys in KEYS.items():
             f = sink.factor(sensor)
@@ -272,7 +327,7 @@ def tune(logs: list[str], base: Config, say: Callable[[str], None] = print) -> t
         cfg = with_filter(cfg, **changes)
     # 3. the compass's offset
     figures: list[Figures] = []
-    sink, reports = measure(logs, cfg, figures=figures)
+    sink, reports = measure(logs, cfg, figures=figures, replays=replays)
     if sink.mag_offset is not None:
         # an air vehicle's slip and lever arm are never learnt: they stay where they started, and the
         # profile leaves them out
@@ -296,7 +351,7 @@ def tune(logs: list[str], base: Config, say: Callable[[str], None] = print) -> t
             say(f"{sensor}: innovations {f:.2f}x the tuned model")
     # 5. whether one noise level fits every flight
     each: list[Innovations] = []
-    pooled, reports = measure(logs, cfg, each)
+    overall, reports = measure(logs, cfg, each, replays=replays)
     over = unfitted(logs, each, reports)
     if len(logs) == 1:
         say("one log: whether one noise level fits every flight of this vehicle cannot be told from it; "
@@ -304,12 +359,12 @@ def tune(logs: list[str], base: Config, say: Callable[[str], None] = print) -> t
     widen = bool(over) and cfg.monitor.max_wander_factor < F_MAX
     if widen:
         f, name, sensor, peak = max(over)
-        say(f"{name}: {sensor} innovations {f:.2f}x the tuned model ({pooled.factor(sensor):.2f}x over all the "
+        say(f"{name}: {sensor} innovations {f:.2f}x the tuned model ({overall.factor(sensor):.2f}x over all the "
             f"logs), its test at {peak:.2f} of its threshold: one noise level does not fit every flight, so "
             f"each test widens in flight by the wander it measures, up to {F_MAX:g}x "
             "(monitor.max_wander_factor); on a flight that wanders an attack is caught later by as much")
         cfg = dataclasses.replace(cfg, monitor=dataclasses.replace(cfg.monitor, max_wander_factor=F_MAX))
-        _, reports = measure(logs, cfg)
+        _, reports = measure(logs, cfg, replays=replays)
     for log, r in zip(logs, reports):
         margin = ", ".join(f"{s} {v:.2f}" for s, v in sorted(r["peak_ratio"].items()))
         say(f"{Path(log).name}: {len(r['alarms'])} alarm(s); largest statistic/threshold: {margin or 'none'}")

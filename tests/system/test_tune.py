@@ -12,7 +12,7 @@ import pytest
 from guard.config import Config, load, parse
 from guard.core.longrun import F_MAX
 from guard.runtime.replay import replay
-from guard.runtime.tune import tune, write_profile
+from guard.runtime.tune import Replays, measure, tune, write_profile
 from guard_sim import scenario as scn
 from guard_sim.run import run
 from guard_sim.scenario import Attack
@@ -64,7 +64,8 @@ def test_the_cli_writes_a_profile_and_names_a_missing_log(drives, tmp_path):
     base = tmp_path / "base.toml"
     base.write_text('[monitor]\nvehicle = "ground"\n\n[link]\nconnect = "udpin:0.0.0.0:14551"\n')
     out = tmp_path / "vehicle.toml"
-    p = subprocess.run([sys.executable, "-m", "guard", "tune", drives[1], "--out", str(out), "--config", str(base)],
+    p = subprocess.run([sys.executable, "-m", "guard", "tune", drives[1], "--out", str(out), "--config", str(base),
+                        "--jobs", "2"],
                        capture_output=True, text=True, cwd=tmp_path)
     assert p.returncode == 0, p.stderr
     assert "gnss_delay_s" in out.read_text() and "largest statistic/threshold" in p.stdout
@@ -98,3 +99,19 @@ def test_flights_unlike_one_another_get_the_widening_in_flight(drives, tmp_path)
     out = tmp_path / "vehicle.toml"
     write_profile(profile, str(out), [drives[1], drives[2], odd])
     assert load(str(out)).monitor.max_wander_factor == F_MAX
+
+
+def test_replays_on_two_processes_sum_to_the_same_as_on_one(drives):
+    """guard tune's replays shared between processes (--jobs) give what one process gives, to the bit:
+    the same innovations, summed in the logs' order, the same receiver figures, the same reports."""
+    got = {}
+    for jobs in (1, 2):
+        replays, each, figures = Replays(jobs), [], []
+        try:
+            pooled, reports = measure([drives[1], drives[2]], Config(), each, figures, replays=replays)
+        finally:
+            replays.close()
+        got[jobs] = (pooled.sum, pooled.n, pooled.wander, pooled.mag_offset, [e.sum for e in each],
+                     [f.worst.worst() for f in figures], reports)
+    assert got[2] == got[1]
+    assert got[1][0] and got[1][6][0]["gnss_samples"] > 0
