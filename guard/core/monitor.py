@@ -292,8 +292,10 @@ class Monitor:
                                          f"once the receiver reports {START_H_ACC_M:g} m or HDOP {START_HDOP:g}"))
                 return events
         # what the receiver usually says of itself (guard.core.aiding.receiver), heard while no test stirs;
-        # a new filter's first fix is tested by nothing
-        self.gnss_aid.level.hear(fix, self.ekf is None or (self.judge.calm and not self.health.excluded))
+        # a new filter's first fix is tested by nothing, and heard unless an alarm stands through the
+        # restart (a reboot or an outage mid-attack: that fix is the attacker's as much as the last)
+        self.gnss_aid.level.hear(fix, (self.judge.calm and not self.health.excluded) if self.ekf is not None
+                                 else not self.health.latched)
         usual = None if self._usual_said else self.gnss_aid.poor_as_usual()
         if usual:
             self._usual_said = True

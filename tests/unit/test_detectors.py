@@ -615,11 +615,15 @@ def test_core_gyro_named_and_readmitted_when_the_magnetometer_stops(imu_fusion_h
 def test_core_reinitialising_keeps_a_gnss_alarm_standing():
     """A time jump of the whole stream (a reboot, a long outage) re-initialises the filter, which
     starts again on the GNSS: a GNSS alarm is not cleared by it (no single event may hide an attack),
-    it stands, latched, and the operator is told so."""
+    it stands, latched, and the operator is told so. The new filter's first fix, the attacker's as much
+    as the last, is not heard as what the receiver usually says of itself (its h_acc left out)."""
     samples = drive(60.0, seed=2, gnss_offset=lambda t: (0.0, 10.0) if t >= 40.0 else (0.0, 0.0))
     jump_at = T0_US + 45_000_000
     samples = [s if s.t_us < jump_at else dataclasses.replace(s, t_us=s.t_us + 30_000_000) for s in samples]
+    for i in [i for i, s in enumerate(samples) if isinstance(s, GnssFix) and s.t_us >= jump_at][:2]:
+        samples[i] = dataclasses.replace(samples[i], h_acc_m=3.33)     # the first is the jump's (time_off_base)
     mon, events = run(samples)
+    assert 3.33 not in [h for _, h in mon.gnss_aid.level.h_window.heard]
     assert [(a.sensor, a.channel) for a in of(events, Alarm)] == [("gnss_pos", "north")]
     assert not of(events, Cleared)
     notices = [n.text for n in of(events, Notice)]

@@ -85,23 +85,23 @@ class ReceiverLevel:
     h_acc (m) and vel_acc (m/s), None where none was heard."""
 
     def __init__(self):
-        self._h = TimedMedian(LEVEL_WINDOW_S)
-        self._v = TimedMedian(LEVEL_WINDOW_S)
+        self.h_window = TimedMedian(LEVEL_WINDOW_S)
+        self.v_window = TimedMedian(LEVEL_WINDOW_S)
         self.h_acc: float | None = None
         self.vel_acc: float | None = None
 
     def hear(self, fix: GnssFix, calm: bool) -> None:
         """A fix the filter is about to use; its figures count towards the usual ones if calm. A time
         that goes back (the autopilot rebooted) starts the window over."""
-        self._h.hear(fix.t_us, fix.h_acc_m if calm else None)
-        self._v.hear(fix.t_us, fix.vel_acc_mps if calm else None)
-        self.h_acc = self._h.median()
-        self.vel_acc = self._v.median()
+        self.h_window.hear(fix.t_us, fix.h_acc_m if calm else None)
+        self.v_window.hear(fix.t_us, fix.vel_acc_mps if calm else None)
+        self.h_acc = self.h_window.median()
+        self.vel_acc = self.v_window.median()
 
     def settled(self) -> tuple[bool, bool]:
         """Whether the h_acc and the vel_acc medians are each over at least SETTLED_S of fixes (a start,
         a reboot or a long gap starts the span over): a receiver still settling is no usual figure."""
-        return tuple(bool(w.heard) and w.span_s() >= SETTLED_S for w in (self._h, self._v))
+        return tuple(bool(w.heard) and w.span_s() >= SETTLED_S for w in (self.h_window, self.v_window))
 
 
 class UsualWorst:
