@@ -15,7 +15,10 @@ motor start lifts from the still IMU's hundredths of a m/s^2 to tenths or more w
 two. `MotorWatch` smooths it over SMOOTH_S and says "start" when it passes both VIB_FLOOR and RISE
 times its still level (learnt while still, over STILL_TAU_S), and "stop" when it has been back under
 half that for STOP_S. An IMU that vibrates from its first sample (a log begun in flight, a noisy IMU)
-has no start, and its stop's line is VIB_FLOOR / 2.
+has no start, and no still level to draw its stop's line from: the line is then its running level
+(smoothed over RUN_TAU_S) over RISE, as a start's is the still level times RISE, held between
+VIB_FLOOR / 2 and VIB_FLOOR (a still IMU reads up to 0.07 m/s^2, over a fixed VIB_FLOOR / 2; a
+running motor never reads under VIB_FLOOR).
 
 From each start or stop, for OPEN_S, the compass's offset b_psi is a faster random walk (Q_OPEN,
 its variance capped at P_OPEN_MAX), so that the offset the current turns the compass by is learnt
@@ -44,6 +47,7 @@ RISE = 4.0              # ... and this many times the still level
 SMOOTH_S = 0.2          # s, the level's own smoothing (one median of a few samples jitters by half)
 STILL_TAU_S = 2.0       # s, the memory of the still level
 STOP_S = 2.0            # s under half the start's line: the motors stopped
+RUN_TAU_S = 10.0        # s, the memory of the running level (a stop's line where no still level was heard)
 OPEN_S = 20.0           # s from a start or stop during which the compass's offset moves fast (lift-off
                         # within 10 s of the motors' start on the real flights, hover within 10 s more)
 Q_OPEN = 0.2            # rad/sqrt(s), its random walk then (11 degrees in a second)
@@ -58,6 +62,7 @@ class MotorWatch:
         self.level: float | None = None     # the vibration, smoothed over SMOOTH_S (its mean square's root)
         self.still: float | None = None     # the still IMU's level (m/s^2)
         self.running: bool | None = None    # None until the first level is heard
+        self.run: float | None = None       # the running level, where the IMU vibrated from its first sample
         self.opened_us: int | None = None   # the last start's or stop's time
         self._ms = 0.0
         self._t_us: int | None = None
@@ -105,6 +110,7 @@ class MotorWatch:
         if self.running is None:
             self._ms, self.running = level * level, level >= VIB_FLOOR
             self.still = None if self.running else level
+            self.run = level if self.running else None
             return None
         dt = max(0, t_us - last) / 1e6
         self._ms += min(1.0, dt / SMOOTH_S) * (level * level - self._ms)
@@ -116,14 +122,18 @@ class MotorWatch:
                 return None
             self.running, self.opened_us = True, t_us
             return "start"
-        if now >= 0.5 * line:
+        # begun running, no still level heard: the line from the running level, learnt while over it
+        stop = 0.5 * line if self.still is not None else min(max(self.run / RISE, 0.5 * VIB_FLOOR), VIB_FLOOR)
+        if now >= stop:
+            if self.still is None:
+                self.run += min(1.0, dt / RUN_TAU_S) * (now - self.run)
             self._under_since = None
             return None
         if self._under_since is None:
             self._under_since = t_us
         if t_us - self._under_since < STOP_S * 1e6:
             return None
-        self.running, self.still, self.opened_us, self._under_since = False, now, t_us, None
+        self.running, self.still, self.run, self.opened_us, self._under_since = False, now, None, t_us, None
         return "stop"
 
     def still_offset(self, ekf) -> float | None:
