@@ -34,7 +34,8 @@ def timed(logs: list[str], jobs: int) -> tuple[float, dict]:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("logs", nargs="*", help="clean logs to tune on (default: simulated drives)")
-    ap.add_argument("--jobs", type=int, default=default_jobs(), help="processes for the second run (default: every core)")
+    ap.add_argument("--jobs", type=int, default=default_jobs(),
+                    help="processes for the second run (default: every core)")
     ap.add_argument("--minutes", type=float, default=2.0, help="length of each simulated drive")
     ap.add_argument("--logs", dest="n_logs", type=int, default=2, help="how many drives to simulate")
     args = ap.parse_args(argv)

@@ -12,7 +12,8 @@ So the bound is the larger of the fixed one and LEVEL_FACTOR times the receiver'
 median of what it reported over the last LEVEL_WINDOW_S of fixes heard while every test was calm
 (nothing near its threshold, nothing set aside), and never more than LEVEL_MAX times the floors. The
 filter's first fixes (nothing tested yet) count, so a receiver that is poor from power-on is taken at
-its word from the start (a restarted filter's do not while an alarm stands through the restart). What it costs, and what it does not:
+its word from the start (a restarted filter's do not while an alarm stands through the restart).
+What it costs, and what it does not:
 - a receiver good to 0.1 m/s that suddenly claims 3 m/s (a spoofer blinding the tests) is still taken
   at the fixed bound: its usual figure is 0.1, and a claim that lasts is heard only while no test
   stirs, for more than half the window before the median moves;
