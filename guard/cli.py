@@ -172,7 +172,7 @@ def _with_system_id(cfg, system_id: int | None):
     return cfg if system_id is None else replace(cfg, link=replace(cfg.link, system_id=system_id))
 
 
-def positive_int(text: str) -> int:
+def _positive_int(text: str) -> int:
     if not text.isdigit() or int(text) < 1:
         raise argparse.ArgumentTypeError(f"{text!r} is not a whole number of 1 or more")
     return int(text)
@@ -263,7 +263,7 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("logs", nargs="+", help="clean logs of the vehicle (.tlog, .bin, .ulg), without an attack")
     r.add_argument("--out", default="guard-profile.toml", help="the profile to write (default: guard-profile.toml)")
     r.add_argument("--config", help="the config to start from (default: guard's defaults)")
-    r.add_argument("--jobs", type=positive_int, metavar="N",
+    r.add_argument("--jobs", type=_positive_int, metavar="N",
                    help="replay the logs on N processes (default: every core; the profile is the same)")
     r.set_defaults(func=_tune)
 

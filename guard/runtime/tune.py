@@ -221,12 +221,13 @@ class Replays:
         self.jobs = max(1, jobs)
         self._pool: ProcessPoolExecutor | None = None
 
-    def run(self, jobs: list[tuple[str, Config, bool]]) -> list:
-        if self.jobs == 1 or len(jobs) < 2:
-            return [replay_one(j) for j in jobs]
+    def run(self, work: list[tuple[str, Config, bool]]) -> list:
+        """replay_one of each (log, cfg, with_figures), in that order."""
+        if self.jobs == 1 or len(work) < 2:
+            return [replay_one(w) for w in work]
         if self._pool is None:
             self._pool = ProcessPoolExecutor(self.jobs)
-        return list(self._pool.map(replay_one, jobs))
+        return list(self._pool.map(replay_one, work))
 
     def close(self) -> None:
         if self._pool is not None:
