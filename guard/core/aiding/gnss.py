@@ -323,4 +323,3 @@ class FreezeWatch:
         if not repeated or speed_mps < self.freeze_speed_mps:
             return None
         return Alarm(fix.t_us, gnss_index, Sensor.GNSS_POS, "frozen", speed_mps, self.freeze_speed_mps, 0.0, "freeze")
-
