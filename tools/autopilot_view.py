@@ -27,8 +27,9 @@ An alarm at which the autopilot's own filter saw the same inconsistency (the sam
 the largest window of its flight so far) came from the data, not from guard's model of it; whether
 the data was attacked, faulty (vibration) or a manoeuvre the autopilot's attitude did not follow is
 for the operator, and this is what to look at. guard's own replay gives the alarms and their times
-(the log's TimeUS, or the ULog's timestamp: the same base). A tlog carries no EKF innovations and is
-not read.
+(the log's TimeUS, older logs' TimeMS, or the ULog's timestamp: the same base, once a time that guard
+put on the receiver's clock is taken back to the log's: the report's `clock`). A tlog carries no EKF
+innovations and is not read.
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 INNOVATIONS = ("XKF3", "NKF3", "EKF3")       # EKF3, EKF2, EKF1: IVN, IVE (m/s), core 0
+EKF_OF = {"XKF3": "EKF3", "NKF3": "EKF2", "EKF3": "EKF1"}     # the filter each message is of
 ACCEPTABLE_VIBE = 30.0                        # m/s/s, ArduPilot's guidance
 
 
@@ -89,7 +91,7 @@ def read(path: str) -> dict[str, np.ndarray]:
         kind = m.get_type()
         if getattr(m, "C", 0) not in (0, None) or getattr(m, "IMU", 0) not in (0, None):
             continue                               # core 0, the first IMU
-        t = m.TimeUS / 1e6
+        t = m.TimeUS / 1e6 if getattr(m, "TimeUS", None) is not None else m.TimeMS / 1e3    # older logs: ms
         if kind == "VIBE":
             clip = sum(getattr(m, f"Clip{i}", 0) or 0 for i in range(3)) + (getattr(m, "Clip", 0) or 0)
             vibe.append((t, m.VibeX, m.VibeY, m.VibeZ, clip))
@@ -97,8 +99,16 @@ def read(path: str) -> dict[str, np.ndarray]:
             innov[kind].append((t, m.IVN, m.IVE))
     used = {2: "NKF3", 3: "XKF3"}.get(int(log.params.get("AHRS_EKF_TYPE", 0) or 0))   # the EKF it flew on
     kind = used if used and innov[used] else next((k for k in INNOVATIONS if innov[k]), None)
-    return {"ekf": kind, "innovations": np.array(innov[kind] if kind else [], dtype=float).reshape(-1, 3),
+    return {"ekf": EKF_OF.get(kind), "innovations": np.array(innov[kind] if kind else [], dtype=float).reshape(-1, 3),
             "vibe": np.array(vibe, dtype=float).reshape(-1, 5), "format": "dataflash"}
+
+
+def as_logged(t_us: int, clock: dict | None) -> float:
+    """A time of guard's report back on the log's own clock, where the autopilot's records are: the
+    report's times are on the receiver's clock where the autopilot's did not keep time (its `clock`)."""
+    if not clock:
+        return t_us
+    return clock["t0_usec"] + (t_us - clock["t0_usec"]) / clock["rate"]
 
 
 def window_means(innov: np.ndarray, window: float) -> np.ndarray:
@@ -194,13 +204,15 @@ def main(argv: list[str] | None = None) -> int:
         from guard.config import Config
         from guard.runtime.replay import replay
         try:
-            alarms = replay(args.log, Config())["alarms"]
+            report = replay(args.log, Config())
         except GuardError as e:
             print(f"autopilot_view: {e}", file=sys.stderr)
             return 2
+        alarms = report["alarms"]
         if not alarms:
             print(f"{args.log}: guard raised no alarm; --at T to look at a time")
-    times = [(a["time_usec"] / 1e6, a) for a in alarms] or [(t, None) for t in args.at or []]
+    times = [(as_logged(a["time_usec"], report.get("clock")) / 1e6, a) for a in alarms] \
+        or [(t, None) for t in args.at or []]
     views = []
     for t, alarm in times:
         v = view(data, t, args.window)

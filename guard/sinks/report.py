@@ -129,6 +129,9 @@ class ReportSink(Sink):
             "rates_hz": {k: round(v, 2) for k, v in getattr(source, "rates_hz", {}).items()},
             "notes": list(source.notes),
             "autopilot": list(source.verdicts),     # the autopilot's own findings, where the log has them
+            # where the log's clock was put on its receiver's (a note says so), every time in this report is
+            # t0 + (logged - t0) rate, the log's own time stamps being `logged`; None: as logged
+            "clock": None if source.clock is None else {"t0_usec": source.clock[0], "rate": source.clock[1]},
             "peak_ratio": {s: round(v, 3) for s, v in sorted(monitor.detector.peak.items())},
             "alarms": self.alarms,
             "cleared": self.cleared,

@@ -7,7 +7,10 @@ declination depends on it; None when the log does not say); `utc_offset_us`, whe
 (GPS time, the ground station's time prefix), what turns its time stamps into UTC (t_us + it), for
 logs written in the flight's own time (`guard.sinks.mcap`). `notes` are lines for the user about
 what the log holds and guard does not use (a second IMU, a receiver it did not pick). `verdicts` are
-the autopilot's own findings, where the log holds them (EKF innovations' test ratios, GPS glitches).
+the autopilot's own findings, where the log holds them (EKF innovations' test ratios, GPS glitches),
+on the samples' clock. `clock`, where the autopilot's clock did not keep time against its GNSS
+receiver's (guard.sources.clock), is (t0, rate): every time stamp t of the log was put at
+t0 + (t - t0) rate; `as_logged` takes a sample's time back to the log's own (its other records').
 Live links (`guard.sources.link`, `guard.sources.can`) poll instead of iterating a file.
 """
 
@@ -29,6 +32,7 @@ class LogSource(ABC):
     utc_offset_us: int | None = None      # t_us + it = UTC microseconds (None: unknown)
     first_time_us: int | None = None      # the log's first and last time stamps (its duration)
     last_time_us: int | None = None
+    clock: tuple[int, float] | None = None    # (t0, rate): the log's time stamps rescaled; None: as logged
 
     def __init__(self) -> None:
         self.messages: Counter[str] = Counter()
@@ -39,6 +43,25 @@ class LogSource(ABC):
     @abstractmethod
     def samples(self) -> Iterator[Sample]:
         """The samples of the log in stream order."""
+
+    def on_clock(self, t_us: int) -> int:
+        """A time stamp of the log on the samples' clock."""
+        if self.clock is None:
+            return t_us
+        t0, rate = self.clock
+        return t0 + round((t_us - t0) * rate)
+
+    def as_logged(self, t_us: int) -> int:
+        """A sample's time (an alarm's) back on the log's own clock, where its other records are."""
+        if self.clock is None:
+            return t_us
+        t0, rate = self.clock
+        return t0 + round((t_us - t0) / rate)
+
+    def _verdicts_on_clock(self) -> None:
+        """The autopilot's verdicts, read with the log's own time stamps, put on the samples' clock."""
+        self.verdicts = [{k: self.on_clock(v) if k in ("time_usec", "end_usec") else v for k, v in verdict.items()}
+                         for verdict in self.verdicts]
 
     def close(self) -> None:
         """Release the file."""

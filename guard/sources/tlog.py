@@ -57,7 +57,6 @@ class TlogReader(LogSource):
                      if T_MIN_US <= first <= T_MAX_US else None)
         self.first_time_us: int | None = None
         self.last_time_us: int | None = None
-        self._clock: tuple[int, float] | None = None     # (t0, rate): the time stamps rescaled (guard.sources.clock)
         if peek:
             try:
                 self._peek(path, system_id)
@@ -78,7 +77,8 @@ class TlogReader(LogSource):
             # GPS_RAW_INT carries no GNSS time: the clock is checked against the receiver's motion,
             # or where the vehicle did not go far enough for that, against its epochs
             track = list(probe.track())
-            self._clock = motion_clock(track, self.notes) or epoch_clock([f[0] for f in track], self.notes)
+            clock = motion_clock(track, self.notes) or epoch_clock([f[0] for f in track], self.notes)
+            self.clock = None if clock is None else (0, clock[1])      # rescaled about the boot
         finally:
             probe.close()
 
@@ -124,7 +124,7 @@ class TlogReader(LogSource):
             yield fix.t_us, fix.lat_deg, fix.lon_deg, fix.vel_n_mps, fix.vel_e_mps
 
     def samples(self) -> Iterator[Sample]:
-        clock, repeats, fixes = self._clock, CompassRepeats(), UnixFixes(self.notes.append)
+        repeats, fixes = CompassRepeats(), UnixFixes(self.notes.append)
         imu_stream = ImuStream(self.notes.append)
         for msg in self:
             if (kind := msg.get_type()) in IMU_MESSAGES and not imu_stream(kind):
@@ -136,9 +136,9 @@ class TlogReader(LogSource):
                 fixes.imu(sample.t_us, self.last_time_us)
             elif isinstance(sample, GnssFix):
                 sample = fixes.fix(sample, self.last_time_us)     # a fix in UNIX time, on the boot clock
-            if sample is not None and clock is not None and hasattr(sample, "t_us"):
+            if sample is not None and self.clock is not None and hasattr(sample, "t_us"):
                 # on the receiver's time (guard.sources.clock), about the boot: every stream alike
-                sample = dataclasses.replace(sample, t_us=round(sample.t_us * clock[1]))
+                sample = dataclasses.replace(sample, t_us=self.on_clock(sample.t_us))
             if sample is not None:
                 if self.utc_offset_us is None and isinstance(sample, ImuSample) and sample.t_us < T_MIN_US:
                     # the ground station's clock at the first IMU sample: UTC for the log (its latency aside)

@@ -84,3 +84,24 @@ def test_a_px4_log_of_before_1_11_is_read_under_its_older_names(tool, tmp_path, 
     assert abs(v["innovation_east_mps"] + 0.02) < 1e-6 and not v["innovation_zero"]
     assert v["vibe_max"] == [0.02, 0.0002] and v["clipping"] == 0
     assert "EKF2 GNSS velocity innovation" in capsys.readouterr().out
+
+
+def test_an_ardupilot_log_of_before_3_3_is_read_on_its_millisecond_clock(tool, tmp_path, capsys):
+    """ArduPilot before 3.3 stamped its records in ms (TimeMS), and its first EKF (EKF1) logged its
+    innovations as EKF3 (IVN, IVE ...). Written so, 4 s at 10 Hz whose last 2 s run 0.4 m/s east: read
+    on the same seconds as a newer log's, and named EKF1."""
+    from guard_sim.dataflash import FMT, HEADER, LogFormat
+    ekf3 = LogFormat(140, "EKF3", "Icccccchhhc", "TimeMS,IVN,IVE,IVD,IPN,IPE,IPD,IMX,IMY,IMZ,IVT")
+
+    def message(fmt, *values) -> bytes:
+        return HEADER + bytes((fmt.type,)) + fmt.body.pack(*values)
+    data = message(FMT, ekf3.type, ekf3.length, b"EKF3", ekf3.format.encode(), ekf3.columns.encode())
+    for k in range(41):
+        data += message(ekf3, 60_000 + 100 * k, 2, 40 if k >= 20 else 1, 0, 0, 0, 0, 0, 0, 0, 0)
+    path = tmp_path / "old_copter.bin"
+    path.write_bytes(data)
+    assert tool.main([str(path), "--at", "64", "--window", "2", "--json", str(tmp_path / "view.json")]) == 0
+    v, = json.loads((tmp_path / "view.json").read_text())
+    assert v["ekf"] == "EKF1" and abs(v["innovation_east_mps"] - 0.4) < 1e-6 and v["innovation_east_rank"] == 1
+    assert abs(v["innovation_north_mps"] - 0.02) < 1e-6
+    assert "EKF1 GNSS velocity innovation" in capsys.readouterr().out

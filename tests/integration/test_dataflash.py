@@ -326,11 +326,22 @@ def test_an_autopilot_clock_running_slow_is_put_on_the_receivers_time(paper, tmp
     _, bin_ = paper
     skewed = tmp_path / "slow.bin"
     _restamp(bin_, skewed, boot=lambda t: t / 1.08)
+    # the autopilot's EKF failed its GNSS velocity gate from 20 to 21 s of true time: stamped by the slow clock
+    with skewed.open("ab") as f:
+        f.write(declare(XKF4) + b"".join(message(XKF4, round(t / 1.08 * 1e6), 0, 150, 30, 10, 10, 0, 0, 0, 0, 0, 0, 0,
+                                                   0, 0) for t in (20.0, 20.5, 21.0)))
     clean, slow = replay(str(bin_)), replay(str(skewed))
-    assert not any("clock ran" in n for n in clean["notes"])
+    assert not any("clock ran" in n for n in clean["notes"]) and clean["clock"] is None
     said = [n for n in slow["notes"] if "clock ran" in n]
     assert said and "8.0 % slow" in said[0] and "scaled by 1.08" in said[0], slow["notes"]
     assert alarms(slow) == alarms(clean) and alarms(clean)[0][:2] == (400, "gnss_pos")
+    # the verdict is moved with the samples: at its true time, where an alarm of that moment would be
+    verdict, = slow["autopilot"]
+    assert abs(verdict["time_usec"] - 20e6) < 2e4 and abs(verdict["end_usec"] - 21e6) < 2e4, verdict
+    assert abs(slow["clock"]["rate"] - 1.08) < 1e-3
+    # and back on the log's own clock, where the autopilot's other records are (tools/autopilot_view.py)
+    view = load_tool("autopilot_view")
+    assert abs(view.as_logged(verdict["time_usec"], slow["clock"]) - 20e6 / 1.08) < 2e4
 
 
 def test_a_receiver_time_that_jumps_corrects_nothing(paper, tmp_path):

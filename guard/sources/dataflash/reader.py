@@ -79,13 +79,14 @@ class DataFlashReader(LogSource):
         self._accuracy = survey.accuracies(lg, self._gnss, self._gnss_n)
         self.date, self.utc_offset_us = survey.gps_utc(lg, self._gnss)
         # (t0, rate) or None: as logged (`as_logged`: the time stamps as the autopilot wrote them, always)
-        self._clock = None if as_logged else survey.clock_rate(lg, self._gnss, self.notes)
+        self.clock = None if as_logged else survey.clock_rate(lg, self._gnss, self.notes)
         used = [(f"IMU {self._imu_n}", self._imu), (f"GPS {self._gnss_n}", self._gnss), ("MAG", self._mag),
                 ("ATT", self._att)]
         rates = [f"{label}: {survey.rate(lg, s)} Hz" for label, s in used if s is not None]
         if rates:
             self.notes.insert(0, ", ".join(rates))
         self.verdicts = autopilot_verdicts(lg, self.notes)
+        self._verdicts_on_clock()
 
     # -- samples -----------------------------------------------------------------------------------
     def samples(self) -> Iterator[Sample]:
@@ -112,9 +113,8 @@ class DataFlashReader(LogSource):
                 self.skipped[reason] += 1
             if sample is None:
                 continue
-            if self._clock is not None:     # on the GNSS receiver's clock (survey.clock_rate)
-                t0, rate = self._clock
-                sample = dataclasses.replace(sample, t_us=t0 + round((sample.t_us - t0) * rate))
+            if self.clock is not None:      # on the GNSS receiver's clock (survey.clock_rate)
+                sample = dataclasses.replace(sample, t_us=self.on_clock(sample.t_us))
             backwards += sample.t_us < last - 1000
             last = sample.t_us
             self.first_time_us = sample.t_us if self.first_time_us is None else self.first_time_us

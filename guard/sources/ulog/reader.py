@@ -37,6 +37,7 @@ class UlogReader(LogSource):
         self.verdicts = sorted(ekf_verdicts(sets.get(("estimator_innovation_test_ratios", 0)),
                                             sets.get(("estimator_status", 0)), self.skipped)
                                + message_verdicts(ulog), key=lambda v: v["time_usec"])
+        self._verdicts_on_clock()
 
     def _build(self, sets: dict, imu: int | None, gnss: int | None) -> list[Stream]:
         """The streams to merge, in the order samples of equal time go out: vehicle, attitude, IMU, GNSS."""
@@ -54,8 +55,8 @@ class UlogReader(LogSource):
         self.rates_hz = survey.note_streams(sets, streams, imu_key, gps_key, self.notes)
         if gps_key and gps_key[0] in GPS_TOPICS:
             self.date, self.utc_offset_us = survey.utc_date(sets[gps_key])
-            clock = survey.gnss_clock(sets[gps_key], self.notes)   # on the receiver's time, where they part
-            if clock is not None:
+            self.clock = clock = survey.gnss_clock(sets[gps_key], self.notes)   # on the receiver's time, where
+            if clock is not None:                                              # the two part
                 t0, rate = clock
                 streams = [Stream(s.topic, (t0 + np.round((s.t_us - t0) * rate).astype(np.int64), *s.columns[1:]),
                                   s.make) for s in streams]
