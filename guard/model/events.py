@@ -99,8 +99,8 @@ class Estimate:
     east_m: float
     north_m: float
     yaw_rad: float          # ENU yaw: 0 = east, counter-clockwise positive
-    x: np.ndarray           # the full state, shape (13,) (guard.core.ekf)
-    P_diag: np.ndarray      # shape (13,)
+    x: np.ndarray           # the full state, shape (N_STATES,) (guard.core.ekf: 14)
+    P_diag: np.ndarray      # its covariance's diagonal, the same shape
     origin: tuple[float, float, float]   # lat_deg, lon_deg, alt_m of the local frame's origin
     fix_en: tuple[float, float] | None = None   # the fix's own east, north (m): how far the estimate is from it
 
