@@ -103,12 +103,11 @@ def read(path: str) -> dict[str, np.ndarray]:
             "vibe": np.array(vibe, dtype=float).reshape(-1, 5), "format": "dataflash"}
 
 
-def as_logged(t_us: int, clock: dict | None) -> float:
+def as_logged(t_us: int, clock: dict | None) -> int:
     """A time of guard's report back on the log's own clock, where the autopilot's records are: the
     report's times are on the receiver's clock where the autopilot's did not keep time (its `clock`)."""
-    if not clock:
-        return t_us
-    return clock["t0_usec"] + (t_us - clock["t0_usec"]) / clock["rate"]
+    from guard.sources.base import as_logged as back
+    return back(t_us, (clock["t0_usec"], clock["rate"]) if clock else None)
 
 
 def window_means(innov: np.ndarray, window: float) -> np.ndarray:

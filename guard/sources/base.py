@@ -24,6 +24,15 @@ from collections.abc import Iterator
 from guard.model.samples import Sample
 
 
+def as_logged(t_us: int, clock: tuple[int, float] | None) -> int:
+    """A time on the samples' clock (an alarm's) back on the log's own, where its other records are:
+    `clock` is the source's (a report's `clock`: t0_usec, rate)."""
+    if clock is None:
+        return t_us
+    t0, rate = clock
+    return t0 + round((t_us - t0) / rate)
+
+
 class LogSource(ABC):
     path: str
     size: int = 0
@@ -50,13 +59,6 @@ class LogSource(ABC):
             return t_us
         t0, rate = self.clock
         return t0 + round((t_us - t0) * rate)
-
-    def as_logged(self, t_us: int) -> int:
-        """A sample's time (an alarm's) back on the log's own clock, where its other records are."""
-        if self.clock is None:
-            return t_us
-        t0, rate = self.clock
-        return t0 + round((t_us - t0) / rate)
 
     def _verdicts_on_clock(self) -> None:
         """The autopilot's verdicts, read with the log's own time stamps, put on the samples' clock."""

@@ -55,8 +55,9 @@ class UlogReader(LogSource):
         self.rates_hz = survey.note_streams(sets, streams, imu_key, gps_key, self.notes)
         if gps_key and gps_key[0] in GPS_TOPICS:
             self.date, self.utc_offset_us = survey.utc_date(sets[gps_key])
-            self.clock = clock = survey.gnss_clock(sets[gps_key], self.notes)   # on the receiver's time, where
-            if clock is not None:                                              # the two part
+            # on the receiver's time, where the two part
+            self.clock = clock = survey.gnss_clock(sets[gps_key], self.notes)
+            if clock is not None:
                 t0, rate = clock
                 streams = [Stream(s.topic, (t0 + np.round((s.t_us - t0) * rate).astype(np.int64), *s.columns[1:]),
                                   s.make) for s in streams]
