@@ -47,6 +47,8 @@ sys.path.insert(0, str(ROOT))
 INNOVATIONS = ("XKF3", "NKF3", "EKF3")       # EKF3, EKF2, EKF1: IVN, IVE (m/s), core 0
 EKF_OF = {"XKF3": "EKF3", "NKF3": "EKF2", "EKF3": "EKF1"}     # the filter each message is of
 ACCEPTABLE_VIBE = 30.0                        # m/s/s, ArduPilot's guidance
+WINDOW_S = 4.0          # s before each time looked at, by default
+SAW_TOP = 3             # the autopilot saw it too: one of its this many largest windows of the flight so far
 
 
 VIBE_FIELDS = {"dataflash": ("vibration (m/s/s, x y z)", ACCEPTABLE_VIBE),
@@ -110,6 +112,21 @@ def as_logged(t_us: int, clock: dict | None) -> int:
     return back(t_us, (clock["t0_usec"], clock["rate"]) if clock else None)
 
 
+def read_log(path: str, kind: str) -> dict:
+    """`read` or `read_ulog`, by the log's format ("dataflash" or "ulog", as guard's report names it)."""
+    return read(path) if kind == "dataflash" else read_ulog(path)
+
+
+def saw_too(v: dict, alarm: dict) -> bool | None:
+    """Whether the autopilot's EKF saw a GNSS velocity alarm's inconsistency too: on the alarm's axis, the
+    same way (its innovation's sign the opposite of guard's), one of its SAW_TOP largest windows of the
+    flight so far. None where it cannot say: another sensor's alarm, no innovations there, or zeros."""
+    key = f"innovation_{alarm['channel']}_mps"
+    if alarm["sensor"] != "gnss_vel" or key not in v or v.get("innovation_zero"):
+        return None
+    return v[key] * alarm["offset"] < 0 and v[f"innovation_{alarm['channel']}_rank"] <= SAW_TOP
+
+
 def window_means(innov: np.ndarray, window: float) -> np.ndarray:
     """(end time, mean IVN, mean IVE) of every window of `window` s, ends 1 s apart."""
     if len(innov) == 0:
@@ -154,6 +171,8 @@ def say(v: dict, alarm: dict | None) -> str:
         names = "|".join([alarm["sensor"], *alarm["ambiguous_with"]])
         head += f": guard's alarm {names} {alarm['channel']} {alarm['offset']:+.2f}"
     lines = [head]
+    if alarm and saw_too(v, alarm):
+        lines[0] += f" (the autopilot saw it too: one of its {SAW_TOP} largest windows so far, the same way)"
     if "innovation_north_mps" in v:
         lines.append(f"  the autopilot's {v['ekf']} GNSS velocity innovation over the {v['window_s']:g} s before: "
                      f"north {v['innovation_north_mps']:+.2f} m/s (rank {v['innovation_north_rank']} of "
@@ -178,7 +197,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("log", help="an ArduPilot DataFlash log (.bin) or a PX4 ULog (.ulg)")
     p.add_argument("--at", type=float, action="append", help="a time of the log in s (repeatable); "
                    "default: each alarm of guard's replay")
-    p.add_argument("--window", type=float, default=4.0, help="seconds before each time (default 4)")
+    p.add_argument("--window", type=float, default=WINDOW_S, help=f"seconds before each time (default {WINDOW_S:g})")
     p.add_argument("--json", help="write the views as JSON here")
     args = p.parse_args(argv)
     from guard.errors import GuardError
@@ -193,7 +212,7 @@ def main(argv: list[str] | None = None) -> int:
               "autopilot's own log carries its EKF's innovations", file=sys.stderr)
         return 2
     try:
-        data = read(args.log) if kind == "dataflash" else read_ulog(args.log)
+        data = read_log(args.log, kind)
     except Exception as e:                         # pymavlink and pyulog raise what they raise on a corrupt file
         reader = "pymavlink" if kind == "dataflash" else "pyulog"
         print(f"autopilot_view: {args.log}: {reader} could not read it ({type(e).__name__}: {e})", file=sys.stderr)

@@ -9,6 +9,7 @@ measured on real vehicles it was never tuned on.
     python tools/real_logs.py LOGS_DIR --config my-vehicle.toml --json out/real.json
     python tools/real_logs.py LOGS_DIR --attack step:2 --attack step:10 --attack ramp:0.3
     python tools/real_logs.py LOGS_DIR --attack gyro:0.05 --attack accel:0.5
+    python tools/real_logs.py LOGS_DIR --autopilot     # and how many GNSS velocity alarms the autopilot saw too
 
 `--attack` writes an attack into each flight's own fixes, from its fix at 30, 50 and 70 % of them
 (each a run of its own), and says how often and how fast it was caught: a GNSS alarm within
@@ -48,6 +49,7 @@ from guard.core.geo import LocalFrame                # noqa: E402
 from guard.model.samples import GnssFix, ImuSample   # noqa: E402
 from guard.runtime.replay import replay              # noqa: E402
 import pymap3d                                       # noqa: E402
+from tools.autopilot_view import SAW_TOP             # noqa: E402
 
 SUFFIXES = {".tlog", ".bin", ".ulg"}
 
@@ -172,8 +174,21 @@ def caught(alarms: list[dict], onset_us: int, window_s: float, any_sensor: bool 
     return None
 
 
-def one(job: tuple[str, str | None, tuple[str, ...], tuple[str, ...]]) -> dict:
-    path, config, sets, attacks = job
+def autopilot_saw(path: str, report: dict) -> list[int] | str:
+    """[k, n]: of the n GNSS velocity alarms the autopilot's own EKF could be asked about (its innovations
+    in the log there), k it saw too (tools/autopilot_view.py, `saw_too`); or why it could not be read."""
+    from tools.autopilot_view import WINDOW_S as window, as_logged, read_log, saw_too, view
+    try:
+        data = read_log(path, report["format"])
+    except Exception as e:          # noqa: BLE001 - pymavlink and pyulog raise what they raise on a corrupt file
+        return f"the autopilot's innovations could not be read ({type(e).__name__}: {e})"
+    said = [saw_too(view(data, as_logged(a["time_usec"], report.get("clock")) / 1e6, window), a)
+            for a in report["alarms"] if a["sensor"] == "gnss_vel"]
+    return [sum(x is True for x in said), sum(x is not None for x in said)]
+
+
+def one(job: tuple[str, str | None, tuple[str, ...], tuple[str, ...], bool]) -> dict:
+    path, config, sets, attacks, ask = job
     span = Span()
     try:
         cfg = config_of(config, sets)
@@ -187,6 +202,8 @@ def one(job: tuple[str, str | None, tuple[str, ...], tuple[str, ...]]) -> dict:
            "estimate_to_fix_m": r["estimate_to_fix_m"],
            "warnings": [n["text"] for n in r["notices"] if n["level"] == "warning"], "attacks": {},
            "receiver_jump_m": round(span.jump, 2)}
+    if ask and r["format"] in ("dataflash", "ulog"):
+        out["autopilot_saw"] = autopilot_saw(path, r)
     for spec in attacks:
         kind, size = spec.split(":")
         runs, imu = [], kind in IMU_ATTACKS
@@ -244,6 +261,9 @@ def main(argv=None) -> int:
     ap.add_argument("--json", help="write every log's result here")
     ap.add_argument("--attack", action="append", default=[], type=attack_spec, metavar="step:M|ramp:V|gyro:W|accel:A",
                     help="also run each log with this attack written into it (repeatable)")
+    ap.add_argument("--autopilot", action="store_true",
+                    help="also ask each DataFlash and ULog log's own EKF about guard's GNSS velocity alarms "
+                         "(tools/autopilot_view.py): how many it saw too")
     args = ap.parse_args(argv)
     try:                                            # a bad key or file, said before any log runs
         logs = logs_in(args.folders)
@@ -251,8 +271,8 @@ def main(argv=None) -> int:
     except GuardError as e:
         print(f"guard: {e}", file=sys.stderr)
         return 2
-    jobs = [(p, args.config, tuple(args.set), tuple(args.attack)) for p in logs]
-    results, total, hours, fixes, far_fixes = [], Counter(), 0.0, 0, 0.0
+    jobs = [(p, args.config, tuple(args.set), tuple(args.attack), args.autopilot) for p in logs]
+    results, total, hours, fixes, far_fixes, saw = [], Counter(), 0.0, 0, 0.0, [0, 0]
     with ProcessPoolExecutor(max(1, args.jobs)) as ex:
         for r in ex.map(one, jobs):
             results.append(r)
@@ -269,10 +289,16 @@ def main(argv=None) -> int:
             fixes += gap["fixes"]
             far_fixes += far * gap["fixes"]
             again = f"; {r['n_standing']} a standing alarm again" if r["n_standing"] else ""
+            asked = r.get("autopilot_saw")
+            if isinstance(asked, list):
+                saw = [saw[0] + asked[0], saw[1] + asked[1]]
+                asked = f"; the autopilot's EKF saw {asked[0]} of {asked[1]} GNSS velocity alarms too"
+            elif asked:
+                asked = f"; {asked}"
             print(f"{name}: {r['format']}, {r['duration_s']:.0f} s; alarms {r['n_alarms']} ({by}{again}); "
                   f"peaks {peaks}; "
                   f"estimate from the fixes {gap['max']:.1f} m at most, over 5 m at {100 * far:.1f} %; "
-                  f"the receiver's own largest jump {r['receiver_jump_m']:.2f} m")
+                  f"the receiver's own largest jump {r['receiver_jump_m']:.2f} m{asked or ''}")
     n = sum(1 for r in results if "error" not in r)
     quiet = sum(1 for r in results if r.get("n_alarms") == 0)
     by = ", ".join(f"{s} {k}" for s, k in sorted(total.items())) or "none"
@@ -280,6 +306,10 @@ def main(argv=None) -> int:
     print(f"{n} logs, {hours:.2f} h: {sum(total.values())} alarms ({by}); {standing} of them a standing "
           f"alarm again; {quiet} logs without one; "
           f"the estimate over 5 m from the fix at {100 * far_fixes / max(fixes, 1):.1f} % of {fixes} fixes")
+    if args.autopilot:
+        print(f"the autopilot's own EKF saw {saw[0]} of the {saw[1]} GNSS velocity alarms it could be asked about "
+              f"too (DataFlash and ULog logs: one of its {SAW_TOP} largest windows of the flight so far, the same "
+              "way; tools/autopilot_view.py)")
     if args.attack:
         print("\n".join(attack_lines(results, args.attack)))
     if args.json:

@@ -1,8 +1,10 @@
 """tools/real_logs.py: every log in a folder replayed, a line each and the totals; a bad key named
 before any log runs."""
 
+import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -58,3 +60,19 @@ def test_an_attack_written_into_real_fixes_is_caught_and_measured(shared, tmp_pa
     assert len({run["onset_us"] for run in runs}) == 6
     bad = tool(folder, "--attack", "step:ten")
     assert bad.returncode == 2 and "step:METRES" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_the_autopilot_is_asked_about_each_gnss_velocity_alarm(shared, tmp_path):
+    """--autopilot: each DataFlash or ULog log's own EKF asked about guard's GNSS velocity alarms. The
+    crash flight's one alarm came at its EKF's largest velocity inconsistency of the flight so far
+    (tests/integration/test_autopilot_view.py); a tlog carries no EKF innovations and is not asked."""
+    crash = shared / "data" / "real" / "ardupilot_copter_pixhawk1_crash.bin"
+    rover = shared / "data" / "ardupilot-sitl" / "rover_clean_turns.tlog"
+    if not (crash.is_file() and rover.is_file()):
+        pytest.skip(f"{crash} or {rover} is not here (the shared data folder sits beside the project)")
+    got = tool(crash, rover, "--autopilot", "--json", tmp_path / "out.json")
+    assert got.returncode == 0, got.stderr
+    results = {Path(r["log"]).name: r for r in json.loads((tmp_path / "out.json").read_text())}
+    assert results[crash.name]["autopilot_saw"] == [1, 1]
+    assert "autopilot_saw" not in results[rover.name]
+    assert "the autopilot's own EKF saw 1 of the 1 GNSS velocity alarms" in got.stdout
