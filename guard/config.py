@@ -139,6 +139,8 @@ def _check(cfg: Config, where: str) -> None:
         "monitor.max_gap_s": (cfg.monitor.max_gap_s < 1.0, "must be >= 1 s (below, every gap restarts the filter)"),
         "monitor.readmit_sigma": (cfg.monitor.readmit_sigma < 1.0, "must be >= 1 (below, no sensor is ever re-admitted)"),
         "monitor.max_coast_m": (cfg.monitor.max_coast_m < 1.0, "must be >= 1 m"),
+        "monitor.max_coast_heading_deg": (not 1.0 <= cfg.monitor.max_coast_heading_deg <= 90.0,
+                                          "must be within 1..90 deg"),
         "monitor.min_imu_hz": (cfg.monitor.min_imu_hz > 100.0, "must be at most 100 Hz"),
         "monitor.max_wander_factor": (not 1.0 <= cfg.monitor.max_wander_factor <= 10.0,
                                       "must be within 1..10 (1: each test as the model says)"),

@@ -15,7 +15,7 @@ import numpy as np
 
 from guard.core.detectors import Detector
 from guard.core.anchor import anchor
-from guard.core.ekf import BAY, BW, LA, X, Y, NavEKF
+from guard.core.ekf import BAY, BM, BW, LA, TH, X, Y, NavEKF
 from guard.core.health import Health
 from guard.core.history import History
 from guard.core.isolation import TURN_Z, Witnesses
@@ -145,7 +145,12 @@ class Judge:
         return standing
 
     def _readmission(self, sensor, t_us, r, S, hits, ekf, now_us, gnss_index) -> tuple[list[Event], bool]:
-        """An excluded sensor's test: re-admitted once it has agreed long enough and no witness holds it."""
+        """An excluded sensor's test: re-admitted once it has agreed long enough and no witness holds it,
+        or, the compass, once the heading cannot be held without it (reanchor_heading)."""
+        if sensor == Sensor.MAG and sensor not in self.health.with_receiver:
+            events = self.reanchor_heading(ekf, t_us, gnss_index)
+            if events:
+                return events, True
         z = np.abs(r) / np.sqrt(np.diagonal(S))
         bad = bool(hits) or bool(np.any(z > self.cfg.readmit_sigma)) or \
             self.health.blind(sensor, math.sqrt(float(np.max(np.diagonal(S)))), self.cfg.readmit_sigma) or \
@@ -206,3 +211,27 @@ class Judge:
         for sensor in [s for s in RECEIVER if s in self.health.excluded]:
             events += self.readmit(sensor, fix.t_us, gnss_index, silent=True)
         return events
+
+    def reanchor_heading(self, ekf: NavEKF, t_us: int, gnss_index: int) -> list[Event]:
+        """The compass's exclusion has a bounded life too. Once the heading held without it (by the gyro,
+        and by the GNSS course while the vehicle manoeuvres) is uncertain by more than
+        max_coast_heading_deg (1 sigma: an air vehicle hovering on a gyro whose bias is known only so
+        well), the compass can be neither confirmed nor refuted: it is fused again, its reading
+        re-anchoring the heading (whose variance is by then mostly the filter's), and its alarm stands
+        (latched, no Cleared). What a patient attacker gains: a compass turned and held out that long
+        is then taken. While the GNSS course holds the heading (on wheels, or in the air as the vehicle
+        turns and speeds up) the heading stays sure and the compass refuted."""
+        sigma = self._heading_sigma(ekf)
+        if sigma <= math.radians(self.cfg.max_coast_heading_deg):
+            return []
+        again = self.last_alarm.get(Sensor.MAG, (0, False))[1]
+        return [Notice(t_us, "info" if again else "warning", f"compass could not be confirmed or refuted (the "
+                       f"heading +-{math.degrees(sigma):.0f} deg without it): re-anchored on it"
+                       f"{' again' if again else ''}, its alarm stands")] + \
+            self.readmit(Sensor.MAG, t_us, gnss_index, silent=True)
+
+    @staticmethod
+    def _heading_sigma(ekf: NavEKF) -> float:
+        """How sure the estimate is of what the compass should read, theta + b_psi (rad, 1 sigma)."""
+        P = ekf.P
+        return math.sqrt(max(P[TH, TH] + P[BM, BM] + 2.0 * P[TH, BM], 0.0))

@@ -74,6 +74,8 @@ class MonitorConfig:
     vehicle: str = "auto"                   # "ground": v_y = 0 is fused; "air": not; "auto": from the HEARTBEAT
     max_coast_m: float = 20.0               # m (1 sigma): an excluded GNSS the other sensors cannot hold the
                                             # estimate against for longer is re-anchored on, its alarm standing
+    max_coast_heading_deg: float = 10.0     # deg (1 sigma): an excluded compass the other sensors cannot hold
+                                            # the heading against for longer is re-anchored on, its alarm standing
     min_imu_hz: float = 8.0                 # Hz: a slower IMU stream (telemetry) is not integrated
     max_wander_factor: float = 1.0          # the most a test is widened for its innovations' wander
                                             # (guard.core.longrun); 1, the default: as the model says

@@ -2,11 +2,15 @@
 that disagrees again is the same news. The core marks it; the re-anchoring's warning is said once per
 alarm; STATUSTEXT says it as "GUARD still ..." at most every STANDING_EVERY_S per sensor."""
 
+import math
+
 import pytest
 
 from guard.config import LinkConfig
+from guard.core.ekf import BM
+from guard.core.health import Health
 from guard.core.monitor import MonitorConfig
-from guard.model.events import Alarm, Notice
+from guard.model.events import Alarm, Cleared, Estimate, Notice
 from guard.model.sensors import Sensor
 from guard.sinks import statustext
 from guard.sinks.statustext import StatusText
@@ -118,10 +122,44 @@ def test_an_alarm_s_text_keeps_its_gnss_sample_whole():
 def test_the_lateral_channel_is_cleared_on_wheels_only():
     """An accelerometer re-admitted says "clear" for each channel its test has: on wheels x, y and
     "lateral" (the sideways constraint, tested with it), in the air x and y."""
-    from guard.core.health import Health
     from guard.model.sensors import RECEIVER
     for lateral, channels in ((True, ["x", "y", "lateral"]), (False, ["x", "y"])):
         health = Health(RECEIVER, 3.0)
         health.lateral = lateral
         health.exclude(Sensor.ACCEL, 0)
         assert [c.channel for c in health.readmit(Sensor.ACCEL, 1, 0)] == channels
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_compass_excluded_in_the_air_is_re_anchored_on_once_the_heading_cannot_be_held(seed):
+    """An air vehicle on a straight line (nothing but the compass observes its heading) whose compass
+    turns 20 degrees at 30 s: the alarm comes at once and the compass is set aside, the heading held by
+    the gyro. The exclusion has a bounded life: once the heading is uncertain by max_coast_heading_deg
+    without it, a warning says the compass could be neither confirmed nor refuted and the heading is
+    re-anchored on it, its alarm standing (no clear): what a patient attacker gains, the compass's turn
+    taken into the heading and its offset. A tighter bound comes sooner."""
+    turned = lambda t: 20.0 if t >= 30.0 else 0.0      # noqa: E731
+    when = {}
+    for bound in (10.0, 4.0):
+        cfg = MonitorConfig(declination_deg=0.0, vehicle="air", max_coast_heading_deg=bound)
+        mon, events = run(drive(240.0, yaw=0.4, seed=seed, mag_turn=turned), cfg)
+        alarms = of(events, Alarm)
+        assert [(a.sensor, a.standing) for a in alarms] == [(Sensor.MAG, False)]
+        assert abs(alarms[0].t_us - (T0_US + 30e6)) <= 0.5e6
+        anchored = [n for n in of(events, Notice) if n.text.startswith("compass could not be confirmed")]
+        assert [n.level for n in anchored] == ["warning"], anchored
+        assert not [c for c in of(events, Cleared) if c.sensor == Sensor.MAG]
+        assert Sensor.MAG not in mon.excluded and Sensor.MAG in mon.health.alarmed()
+        estimates = of(events, Estimate)
+        before = [e for e in estimates if alarms[0].t_us < e.t_us < anchored[0].t_us]
+        after = [e for e in estimates if e.t_us > anchored[0].t_us + 5e6]
+        off = lambda e: math.degrees(math.remainder(e.yaw_rad - 0.4, math.tau))      # noqa: E731
+        assert max(abs(off(e)) for e in before) < 5.0, "refuted, the heading held by the gyro"
+        # then the compass's turn is taken: its reading, heading plus offset b_psi, explained again, and
+        # the heading turned by much of it
+        taken = [off(e) + math.degrees(e.x[BM]) for e in after]
+        assert all(abs(abs(t) - 20.0) < 3.0 for t in taken), taken[::20]
+        assert min(abs(off(e)) for e in after) > 8.0
+        when[bound] = anchored[0].t_us - alarms[0].t_us
+    assert 20e6 < when[4.0] < when[10.0] < 200e6, when
+
