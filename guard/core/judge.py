@@ -41,6 +41,9 @@ class Judge:
         self.rewind_epochs = 0                      # what the last alarm asks the monitor to undo
         self.ratios: dict[Sensor, float] = {}       # each sensor's latest statistic / threshold, largest channel
         self.last_alarm: dict[Sensor, tuple[int, bool]] = {}   # sensor -> (time, standing) of its last alarm
+        self.gyro_suspect: float | None = None      # the compass's alarm offset, where it left the gyro a suspect
+        self.air = True                             # the vehicle may move sideways (the monitor says; on wheels
+                                                    # the GNSS course witnesses the heading)
 
     @property
     def calm(self) -> bool:
@@ -93,6 +96,15 @@ class Judge:
                 # bias): back as far as the history goes
                 self.rewind_epochs = self.detector.run_length.get(sensor, 0) \
                     if sensor == Sensor.GNSS_POS else len(self.history)
+            if named == Sensor.MAG and Sensor.GYRO in ambiguous and self.air:
+                # in the air the gyro's bias may as well be what turned apart from the compass: without the
+                # compass the filter is to know it no better than at power-on, so that the GNSS course (as the
+                # vehicle manoeuvres) finds it, or the heading's bounded life (reanchor_heading) gives the
+                # compass back. (On wheels the course witnesses the heading all along.)
+                forgotten = ekf.cfg.p0_gyro_bias_radps ** 2 - ekf.P[BW, BW]
+                if forgotten > 0.0:
+                    ekf.P[BW, BW] += forgotten
+                self.gyro_suspect = abs(offset) if offset is not None else 0.0
             if named == Sensor.MAG and sensor == Sensor.GNSS_VEL and run is not None:
                 # the course named the compass over the alarm's run: the gyro bias the filter learnt from
                 # it since the run began is the compass's turn, given back (as the accelerometer's below)
@@ -154,6 +166,7 @@ class Judge:
         z = np.abs(r) / np.sqrt(np.diagonal(S))
         bad = bool(hits) or bool(np.any(z > self.cfg.readmit_sigma)) or \
             self.health.blind(sensor, math.sqrt(float(np.max(np.diagonal(S)))), self.cfg.readmit_sigma) or \
+            self._heading_blind(sensor, ekf) or \
             self._held(sensor, t_us, ekf, now_us)
         if not self.health.settle(sensor, t_us, bad):
             return [], False
@@ -177,8 +190,17 @@ class Judge:
             return Sensor.GNSS_VEL in self.health.excluded and t_us - self.vel_t < 1e6
         return False
 
+    def _heading_blind(self, sensor: Sensor, ekf: NavEKF) -> bool:
+        """A compass set aside with the gyro a suspect, whose heading the filter now holds too loosely to
+        see the alarm's offset (readmit_sigma of it at least as large): agreeing with it proves nothing
+        (the compass waits for the GNSS course to hold the heading again, or for reanchor_heading)."""
+        return sensor == Sensor.MAG and self.gyro_suspect is not None and \
+            self.cfg.readmit_sigma * self._heading_sigma(ekf) >= self.gyro_suspect
+
     def readmit(self, sensor: Sensor, t_us: int, gnss_index: int, silent: bool = False) -> list[Event]:
         self.detector.forget(sensor)                # a fresh test: what it summed while excluded is spent
+        if sensor == Sensor.MAG:
+            self.gyro_suspect = None
         return self.health.readmit(sensor, t_us, gnss_index, silent)
 
     def reanchor(self, ekf: NavEKF, fix: GnssFix, en: tuple[float, float], gnss_aid, max_coast_m: float,

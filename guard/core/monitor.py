@@ -74,7 +74,7 @@ class MonitorConfig:
     vehicle: str = "auto"                   # "ground": v_y = 0 is fused; "air": not; "auto": from the HEARTBEAT
     max_coast_m: float = 20.0               # m (1 sigma): an excluded GNSS the other sensors cannot hold the
                                             # estimate against for longer is re-anchored on, its alarm standing
-    max_coast_heading_deg: float = 10.0     # deg (1 sigma): an excluded compass the other sensors cannot hold
+    max_coast_heading_deg: float = 20.0     # deg (1 sigma): an excluded compass the other sensors cannot hold
                                             # the heading against for longer is re-anchored on, its alarm standing
     min_imu_hz: float = 8.0                 # Hz: a slower IMU stream (telemetry) is not integrated
     max_wander_factor: float = 1.0          # the most a test is widened for its innovations' wander
@@ -143,6 +143,7 @@ class Monitor:
         self.witnesses = Witnesses(f, self.cfg.freeze_speed_mps)
         self.history = History(REWIND_S, f.gnss_delay_s, self.cfg.imu_fusion_hz or 1000.0)
         self.judge = Judge(self.cfg, self.detector, self.health, self.witnesses, self.history, self.longrun)
+        self.judge.air = not self.ground
         self.freeze = FreezeWatch(self.cfg.freeze_speed_mps)
         self.averager = Averager(self.cfg.imu_fusion_hz)
         self.impact = Impact()
@@ -243,6 +244,7 @@ class Monitor:
             return []
         self.ground = v.ground
         self.health.lateral = v.ground and self.cfg.test_lateral
+        self.judge.air = not v.ground
         if self.ekf is not None and self.inertial is not False:
             self.ekf.tilting(not v.ground)
         what = ("a ground vehicle: its sideways velocity is held at zero" if v.ground
