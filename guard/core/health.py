@@ -47,7 +47,9 @@ class Health:
         """Could a test whose innovation has standard deviation `sigma` not tell the alarm's offset
         from noise? Then agreeing with it proves nothing: the estimate has drifted too far to judge
         (the sensor waits; an estimate that cannot hold is re-anchored, its alarm standing). For the
-        GNSS, whose test is against the estimate; the IMU's wait on their witnesses."""
+        GNSS, whose test is against the estimate, and for a compass whose alarm left the gyro a suspect
+        (the judge sizes it, and judges it on the heading's own uncertainty); the IMU's wait on their
+        witnesses."""
         return readmit_sigma * sigma >= self.offsets.get(sensor, float("inf"))
 
     def settle(self, sensor: Sensor, t_us: int, bad: bool) -> bool:

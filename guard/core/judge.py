@@ -41,7 +41,6 @@ class Judge:
         self.rewind_epochs = 0                      # what the last alarm asks the monitor to undo
         self.ratios: dict[Sensor, float] = {}       # each sensor's latest statistic / threshold, largest channel
         self.last_alarm: dict[Sensor, tuple[int, bool]] = {}   # sensor -> (time, standing) of its last alarm
-        self.gyro_suspect: float | None = None      # the compass's alarm offset, where it left the gyro a suspect
         self.air = True                             # the vehicle may move sideways (the monitor says; on wheels
                                                     # the GNSS course witnesses the heading)
 
@@ -104,7 +103,9 @@ class Judge:
                 forgotten = ekf.cfg.p0_gyro_bias_radps ** 2 - ekf.P[BW, BW]
                 if forgotten > 0.0:
                     ekf.P[BW, BW] += forgotten
-                self.gyro_suspect = abs(offset) if offset is not None else 0.0
+                # and agreeing with a heading held that loosely proves nothing (Health.blind, judged on the
+                # heading's own uncertainty): the compass waits for the course, or for reanchor_heading
+                health.offsets[Sensor.MAG] = abs(offset) if offset is not None else 0.0
             if named == Sensor.MAG and sensor == Sensor.GNSS_VEL and run is not None:
                 # the course named the compass over the alarm's run: the gyro bias the filter learnt from
                 # it since the run began is the compass's turn, given back (as the accelerometer's below)
@@ -159,14 +160,17 @@ class Judge:
     def _readmission(self, sensor, t_us, r, S, hits, ekf, now_us, gnss_index) -> tuple[list[Event], bool]:
         """An excluded sensor's test: re-admitted once it has agreed long enough and no witness holds it,
         or, the compass, once the heading cannot be held without it (reanchor_heading)."""
-        if sensor == Sensor.MAG and sensor not in self.health.with_receiver:
-            events = self.reanchor_heading(ekf, t_us, gnss_index)
-            if events:
-                return events, True
+        if sensor == Sensor.MAG:
+            sigma = self._heading_sigma(ekf)        # what the estimate could see of the compass's offset
+            if sensor not in self.health.with_receiver:
+                events = self.reanchor_heading(sigma, t_us, gnss_index)
+                if events:
+                    return events, True
+        else:
+            sigma = math.sqrt(float(np.max(np.diagonal(S))))
         z = np.abs(r) / np.sqrt(np.diagonal(S))
         bad = bool(hits) or bool(np.any(z > self.cfg.readmit_sigma)) or \
-            self.health.blind(sensor, math.sqrt(float(np.max(np.diagonal(S)))), self.cfg.readmit_sigma) or \
-            self._heading_blind(sensor, ekf) or \
+            self.health.blind(sensor, sigma, self.cfg.readmit_sigma) or \
             self._held(sensor, t_us, ekf, now_us)
         if not self.health.settle(sensor, t_us, bad):
             return [], False
@@ -190,17 +194,8 @@ class Judge:
             return Sensor.GNSS_VEL in self.health.excluded and t_us - self.vel_t < 1e6
         return False
 
-    def _heading_blind(self, sensor: Sensor, ekf: NavEKF) -> bool:
-        """A compass set aside with the gyro a suspect, whose heading the filter now holds too loosely to
-        see the alarm's offset (readmit_sigma of it at least as large): agreeing with it proves nothing
-        (the compass waits for the GNSS course to hold the heading again, or for reanchor_heading)."""
-        return sensor == Sensor.MAG and self.gyro_suspect is not None and \
-            self.cfg.readmit_sigma * self._heading_sigma(ekf) >= self.gyro_suspect
-
     def readmit(self, sensor: Sensor, t_us: int, gnss_index: int, silent: bool = False) -> list[Event]:
         self.detector.forget(sensor)                # a fresh test: what it summed while excluded is spent
-        if sensor == Sensor.MAG:
-            self.gyro_suspect = None
         return self.health.readmit(sensor, t_us, gnss_index, silent)
 
     def reanchor(self, ekf: NavEKF, fix: GnssFix, en: tuple[float, float], gnss_aid, max_coast_m: float,
@@ -234,7 +229,7 @@ class Judge:
             events += self.readmit(sensor, fix.t_us, gnss_index, silent=True)
         return events
 
-    def reanchor_heading(self, ekf: NavEKF, t_us: int, gnss_index: int) -> list[Event]:
+    def reanchor_heading(self, sigma: float, t_us: int, gnss_index: int) -> list[Event]:
         """The compass's exclusion has a bounded life too. Once the heading held without it (by the gyro,
         and by the GNSS course while the vehicle manoeuvres) is uncertain by more than
         max_coast_heading_deg (1 sigma: an air vehicle hovering on a gyro whose bias is known only so
@@ -242,8 +237,8 @@ class Judge:
         re-anchoring the heading (whose variance is by then mostly the filter's), and its alarm stands
         (latched, no Cleared). What a patient attacker gains: a compass turned and held out that long
         is then taken. While the GNSS course holds the heading (on wheels, or in the air as the vehicle
-        turns and speeds up) the heading stays sure and the compass refuted."""
-        sigma = self._heading_sigma(ekf)
+        turns and speeds up) the heading stays sure and the compass refuted. `sigma`: the heading's
+        uncertainty without it (_heading_sigma)."""
         if sigma <= math.radians(self.cfg.max_coast_heading_deg):
             return []
         again = self.last_alarm.get(Sensor.MAG, (0, False))[1]
