@@ -185,3 +185,17 @@ def test_a_gyro_bias_in_the_air_is_not_left_to_turn_the_heading_away(seed):
     after = [e for e in of(events, Estimate) if e.t_us > anchored[0].t_us + 10e6]
     off = [abs(math.degrees(math.remainder(e.yaw_rad - 0.4, math.tau))) for e in after]
     assert after and max(off) < 3.0, max(off)
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_limit_a_gyro_bias_on_a_straight_line_in_the_air_is_not_resolved(seed):
+    """A limit, stated in the README: the same gyro bias on an air vehicle flying a straight line at
+    5 m/s. Its bias times the speed reads as a sideways accelerometer bias, the heading's uncertainty
+    stays under the bound and nothing re-anchors it: after the one alarm the heading turns with the
+    gyro, more than 90 degrees away by the end. Turns, speed changes or a hover resolve it (above)."""
+    biased = lambda t: 0.05 if t >= 30.0 else 0.0      # noqa: E731
+    mon, events = run(drive(240.0, speed=5.0, yaw=0.4, seed=seed, gyro_bias=biased), AIR)
+    assert [(a.sensor, a.ambiguous_with) for a in of(events, Alarm)] == [(Sensor.MAG, (Sensor.GYRO,))]
+    assert not [n for n in of(events, Notice) if n.text.startswith("compass could not be confirmed")]
+    last = of(events, Estimate)[-1]
+    assert abs(math.degrees(math.remainder(last.yaw_rad - 0.4, math.tau))) > 90.0
