@@ -35,13 +35,19 @@ class Health:
         """An alarm on `named` (of size `offset`, if known): it goes, and with a GNSS sensor the rest of
         its receiver (a spoofer controls both; the one that still agrees is re-admitted after readmit_s)."""
         if offset is not None and named in RECEIVER:
-            self.offsets[named] = abs(offset)
+            self.size(named, offset)
         for out in self.receiver if named in RECEIVER else (named,):
             if out not in self.excluded and out != named:
                 self.with_receiver.add(out)
             self.excluded[out] = t_us
             self.agreed.pop(out, None)
         self.with_receiver.discard(named)
+
+    def size(self, sensor: Sensor, offset: float | None) -> None:
+        """From now until it is re-admitted, the excluded `sensor`'s agreeing counts only where its test
+        could see its alarm's `offset` (`blind`); an offset not known (None) is taken as 0, which no
+        test can see: the sensor then waits to be re-anchored on."""
+        self.offsets[sensor] = abs(offset) if offset is not None else 0.0
 
     def blind(self, sensor: Sensor, sigma: float, readmit_sigma: float) -> bool:
         """Could a test whose innovation has standard deviation `sigma` not tell the alarm's offset

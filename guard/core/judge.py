@@ -105,7 +105,7 @@ class Judge:
                     ekf.P[BW, BW] += forgotten
                 # and agreeing with a heading held that loosely proves nothing (Health.blind, judged on the
                 # heading's own uncertainty): the compass waits for the course, or for reanchor_heading
-                health.offsets[Sensor.MAG] = abs(offset) if offset is not None else 0.0
+                health.size(Sensor.MAG, offset)
             if named == Sensor.MAG and sensor == Sensor.GNSS_VEL and run is not None:
                 # the course named the compass over the alarm's run: the gyro bias the filter learnt from
                 # it since the run began is the compass's turn, given back (as the accelerometer's below)
