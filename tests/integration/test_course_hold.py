@@ -117,13 +117,16 @@ def test_a_step_on_a_slow_drive_with_a_held_course_is_still_caught(tmp_path, see
     assert after[0]["gnss_index"] - k0 <= 10                    # 10 Hz: within 1 s
 
 
-def test_tune_leaves_a_held_course_out(tmp_path):
+def test_tune_leaves_a_held_course_out(tmp_path, monkeypatch):
     """A held course's innovation is the course's error, the same fix after fix, not the receiver's
     noise: `guard tune` leaves it out (Innovation.modelled). The same drive as its receiver would send
     it with a fresh course (the knob changes the course alone) is the reference: tuned on either, the
     GNSS velocity's floor is the same within 15 %. Taken in, the repeated error read as a wander and
     the floor came out 3.3 times the receiver's."""
+    import guard.runtime.tune as tune_module
     from guard.runtime.tune import tune
+    # the simulator's receiver has no latency: the search for one is tests/system/test_tune.py's
+    monkeypatch.setattr(tune_module, "DELAYS", (0.0,))
     floors = {}
     for hold in (0.0, HOLD_MPS):
         sc = scenario.load("clean")

@@ -12,6 +12,7 @@ import pytest
 from guard.config import Config, load, parse
 from guard.core.longrun import F_MAX
 from guard.runtime.replay import replay
+import guard.runtime.tune as tune_module
 from guard.runtime.tune import Replays, measure, tune, write_profile
 from guard_sim import scenario as scn
 from guard_sim.run import run
@@ -79,7 +80,7 @@ def test_the_cli_writes_a_profile_and_names_a_missing_log(drives, tmp_path):
     assert p.returncode == 1 and p.stderr.strip() == f"guard: error: {tmp_path / 'absent.bin'}: no such file"
 
 
-def test_flights_unlike_one_another_get_the_widening_in_flight(drives, tmp_path):
+def test_flights_unlike_one_another_get_the_widening_in_flight(drives, tmp_path, monkeypatch):
     """A third drive whose compass wanders (a copter's motors' field, 3 degrees over 3 s) beside two
     that do not: the noise fitted to the three leaves it at its magnetometer's threshold, so the
     profile lets each test widen in flight by the wander it measures (monitor.max_wander_factor),
@@ -92,6 +93,7 @@ def test_flights_unlike_one_another_get_the_widening_in_flight(drives, tmp_path)
     odd = str(tmp_path / "wandering.tlog")
     run(wandering, 4, tlog=odd)
     said = []
+    monkeypatch.setattr(tune_module, "DELAYS", (0.2,))     # the drives' latency: its search is the first test's
     profile, cfg = tune([drives[1], drives[2], odd], Config(), say=said.append)
     assert profile["monitor"] == {"max_wander_factor": F_MAX} and cfg.monitor.max_wander_factor == F_MAX
     assert any(line.startswith("wandering.tlog: mag innovations") and "does not fit every flight" in line

@@ -48,6 +48,8 @@ def first_after(path: str, k0: int, cfg) -> dict | None:
 
 
 def test_the_position_s_wander_is_a_random_walk_and_a_step_is_still_caught(drives, monkeypatch):
+    # the simulator's receiver has no latency: the search for one is test_tune.py's
+    monkeypatch.setattr(tune_module, "DELAYS", (0.0,))
     profile, cfg = tune([drives[1], drives[2]], Config(), say=lambda line: None)
     fitted, default = profile["filter"], FilterConfig()
     assert fitted["q_pos_m"] > 3 * default.q_pos_m, fitted

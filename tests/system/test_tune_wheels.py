@@ -7,6 +7,7 @@ import dataclasses
 import pytest
 
 from guard.config import parse
+import guard.runtime.tune as tune_module
 from guard.runtime.tune import tune
 from guard_sim import scenario as scn
 from guard_sim.run import run
@@ -14,7 +15,7 @@ from guard_sim.run import run
 SLIP = 0.01
 
 
-def test_on_wheels_the_sensors_place_is_learnt_and_the_constraint_fitted_apart(tmp_path):
+def test_on_wheels_the_sensors_place_is_learnt_and_the_constraint_fitted_apart(tmp_path, monkeypatch):
     """Sensors 1 m ahead of the axle: tune writes where they sit (`sensors_ahead_m`). Told they sit on
     it (d held at 0), the sideways constraint, tested with the accelerometer, reads their swing: tune
     widens the constraint (`lateral_sigma_mps`), not the accelerometer's noise. Each tuned on a drive
@@ -23,6 +24,8 @@ def test_on_wheels_the_sensors_place_is_learnt_and_the_constraint_fitted_apart(t
     route = dataclasses.replace(base.route, sideslip_rad_per_mps2=SLIP, max_yaw_jerk_radps3=2.0, sensors_ahead_m=1.0)
     held = {"p0_sensors_ahead_m": 0.0, "q_sensors_ahead_m": 0.0}
     fitted = {}
+    # the simulator's receiver has no latency: the search for one is test_tune.py's
+    monkeypatch.setattr(tune_module, "DELAYS", (0.0,))
     for seed, (name, table) in enumerate((("learnt", {"monitor": {"vehicle": "ground"}}),
                                           ("held", {"filter": held, "monitor": {"vehicle": "ground"}})), start=1):
         path = str(tmp_path / f"ahead{seed}.tlog")
