@@ -26,6 +26,22 @@ deviation it makes, the compass's scatter about the fit with it and without it (
 of the circle the headings read cover. A log whose turns do not show the iron (its standard error
 over MAX_SIGMA, or its headings over less than MIN_COVER_DEG) says so. A log without a magnetometer,
 an IMU fast enough to integrate, or one that cannot be read, is named and skipped.
+
+The motors' field. The motors' and the battery's current is a field in the body too, and it grows
+with the current: ArduPilot's compassmot calibration measures it per ampere or per unit of throttle.
+Where the log says the throttle u (0 to 1: ArduPilot's CTUN.ThO, older logs' ThrOut / 1000; PX4's
+thrust setpoint, vehicle_thrust_setpoint or actuator_controls_0; a tlog carries none on the
+autopilot's clock and is not read for it), the fit is made again with the body's field
+
+    d(t) = d_0 + m (u(t) - u_med)
+
+m = (m_x, m_y) the motors' field per unit of throttle, d_0 the body's field at the flight's median
+throttle u_med (measured from it, so that d_0 and m are not one another's), fitted over the
+readings with the motors running (u over MIN_THROTTLE), and shown beside the iron's: the scatter
+with d_0 alone and with d_0 and m over the same readings, and the most by which m turns the heading
+as the throttle moves over its usual spread (its 5th to 95th percentile; shown where m's standard
+error times that spread is under MAX_SIGMA). Where a compassmot
+calibration would take out much of the compass's error in flight, the two scatters differ by much.
 """
 
 from __future__ import annotations
@@ -59,6 +75,8 @@ GYRO_SCALE = 0.01       # the gyro's scale error, 1 sigma (a calibrated MEMS gyr
                         # parameter, as over half a circle a deviation looks like a scale error
 MIN_COVER_DEG = 180.0   # the headings read must cover this much of the circle for the iron to be shown
 MIN_IMU_HZ = 8.0        # a slower IMU (telemetry) is not integrated, as guard does not (monitor.min_imu_hz)
+MIN_THROTTLE = 0.05     # the motors run (a throttle under this: idle or stopped)
+MIN_THROTTLE_SPREAD = 0.05   # the throttle's spread (its 95th percentile less its 5th) that can show m
 
 
 class Headings:
@@ -94,13 +112,15 @@ class Headings:
         pass
 
     def arrays(self) -> tuple[np.ndarray, ...] | None:
-        """(t from its stretch's start, Gamma, chi_m, stretch number) of the stretches long enough."""
+        """(t from its stretch's start, Gamma, chi_m, stretch number) of the stretches long enough, and
+        each reading's time on the samples' clock (s)."""
         kept = [np.array(r) for r in self.stretches if len(r) > 20 and r[-1][0] - r[0][0] >= MIN_STRETCH_S]
         if not kept:
             return None
         return (np.concatenate([a[:, 0] - a[0, 0] for a in kept]), np.concatenate([a[:, 1] for a in kept]),
                 np.concatenate([a[:, 2] for a in kept]),
-                np.concatenate([np.full(len(a), j) for j, a in enumerate(kept)]))
+                np.concatenate([np.full(len(a), j) for j, a in enumerate(kept)]),
+                np.concatenate([a[:, 0] for a in kept]))
 
 
 def deviations(chi: np.ndarray, dx: float, dy: float):
@@ -133,18 +153,23 @@ class Fit:
         return self.sigma < MAX_SIGMA
 
 
-def fit(t, gamma, chi_m, stretch, iron: bool = True) -> tuple[np.ndarray, float, np.ndarray] | None:
+def fit(t, gamma, chi_m, stretch, iron: bool = True,
+        u: np.ndarray | None = None) -> tuple[np.ndarray, float, np.ndarray] | None:
     """(d, the robust scatter, the covariance of the parameters) of the model above; iron False holds
-    d at 0. None where Gauss-Newton needs an iron as large as the field."""
+    d at 0; with the throttle u (one per reading), d is (d_0, m), the body's field d_0 + m u. None
+    where Gauss-Newton needs an iron as large as the field."""
     n_s = int(stretch.max()) + 1
     k0 = np.array([math.atan2(np.sin(chi_m[stretch == j] - gamma[stretch == j]).mean(),
                               np.cos(chi_m[stretch == j] - gamma[stretch == j]).mean()) for j in range(n_s)])
-    k1, s, d = np.zeros(n_s), 0.0, np.zeros(2)
+    n_d = 0 if not iron else 2 if u is None else 4
+    k1, s, d = np.zeros(n_s), 0.0, np.zeros(n_d)
+    u_max = 0.0 if u is None else float(np.max(np.abs(u)))
     rows = np.arange(len(t))
-    n_p = 2 * n_s + (3 if iron else 1)
+    n_p = 2 * n_s + 1 + n_d
     for _ in range(ITERATIONS):
         chi = (1.0 + s) * gamma + k0[stretch] + k1[stretch] * t
-        dev, d_chi, d_dx, d_dy = deviations(chi, d[0], d[1])
+        dx, dy = (0.0, 0.0) if n_d == 0 else (d[0], d[1]) if n_d == 2 else (d[0] + d[2] * u, d[1] + d[3] * u)
+        dev, d_chi, d_dx, d_dy = deviations(chi, dx, dy)
         r = wrap(chi_m - chi - dev)
         sigma = max(1.4826 * float(np.median(np.abs(r - np.median(r)))), 1e-6)
         w = np.minimum(1.0, HUBER * sigma / np.maximum(np.abs(r), 1e-12))
@@ -153,18 +178,20 @@ def fit(t, gamma, chi_m, stretch, iron: bool = True) -> tuple[np.ndarray, float,
         J[rows, stretch] = g
         J[rows, n_s + stretch] = g * t
         J[:, 2 * n_s] = g * gamma
-        if iron:
-            J[:, -2], J[:, -1] = d_dx, d_dy
+        if n_d:
+            J[:, 2 * n_s + 1], J[:, 2 * n_s + 2] = d_dx, d_dy
+        if n_d == 4:
+            J[:, -2], J[:, -1] = d_dx * u, d_dy * u
         N = (J * w[:, None]).T @ J
         rhs = (J * w[:, None]).T @ r
         prior = (sigma / GYRO_SCALE) ** 2          # s ~ N(0, GYRO_SCALE^2), in the residuals' units
         N[2 * n_s, 2 * n_s] += prior
         rhs[2 * n_s] -= prior * s
         step = np.linalg.lstsq(N, rhs, rcond=None)[0]
-        if iron:
-            step *= min(1.0, MAX_STEP / max(float(np.hypot(step[-2], step[-1])), 1e-12))
-            d += step[-2:]
-            if math.hypot(*d) > 1.0 - MIN_FIELD:
+        if n_d:
+            step *= min(1.0, MAX_STEP / max(float(np.linalg.norm(step[2 * n_s + 1:])), 1e-12))
+            d += step[2 * n_s + 1:]
+            if math.hypot(d[0], d[1]) + (math.hypot(d[2], d[3]) * u_max if n_d == 4 else 0.0) > 1.0 - MIN_FIELD:
                 return None
         k0 += step[:n_s]
         k1 += step[n_s:2 * n_s]
@@ -174,11 +201,89 @@ def fit(t, gamma, chi_m, stretch, iron: bool = True) -> tuple[np.ndarray, float,
     return d, sigma, np.linalg.pinv(N) * sigma ** 2 * max(1.0, per_second * CORR_S)
 
 
+def throttle_of(path: str) -> np.ndarray | None:
+    """The log's throttle (t s on the log's own clock, u from 0 to 1), or None where it says none (a
+    tlog, whose VFR_HUD has no time of the autopilot's; a log without the messages)."""
+    with open(path, "rb") as f:
+        head = f.read(16)
+    if head.startswith(b"ULog"):
+        return _ulog_throttle(path)
+    if head[:2] == b"\xa3\x95":                 # a DataFlash log's message header
+        return _dataflash_throttle(path)
+    return None
+
+
+def _dataflash_throttle(path: str) -> np.ndarray | None:
+    from pymavlink import DFReader
+    log = DFReader.DFReader_binary(path, zero_time_base=True)
+    rows = []
+    while (m := log.recv_match(type=["CTUN"])) is not None:
+        u = getattr(m, "ThO", None)
+        if u is None and getattr(m, "ThrOut", None) is not None:
+            u = m.ThrOut / 1000.0                    # older logs: per mille
+        t = m.TimeUS / 1e6 if getattr(m, "TimeUS", None) is not None else m.TimeMS / 1e3
+        if u is not None and math.isfinite(u):
+            rows.append((t, u))
+    return np.array(rows, dtype=float) if rows else None
+
+
+def _ulog_throttle(path: str) -> np.ndarray | None:
+    from pyulog import ULog
+    log = ULog(path, ["vehicle_thrust_setpoint", "actuator_controls_0"])
+    found = {d.name: d.data for d in log.data_list if d.multi_id == 0}
+    if "vehicle_thrust_setpoint" in found and "xyz[2]" in found["vehicle_thrust_setpoint"]:
+        d = found["vehicle_thrust_setpoint"]
+        u = -d["xyz[2]"]                            # up is -z (FRD)
+    elif "actuator_controls_0" in found and "control[3]" in found["actuator_controls_0"]:
+        d = found["actuator_controls_0"]
+        u = d["control[3]"]
+    else:
+        return None
+    return np.column_stack([d["timestamp"] / 1e6, u]).astype(float)
+
+
+def on_samples_clock(t_log_s: np.ndarray, clock: dict | None) -> np.ndarray:
+    """Times of the log's own clock (s) on the samples' (the report's `clock`, where guard put the log
+    on its receiver's time: guard.sources.base.as_logged the other way)."""
+    if not clock:
+        return t_log_s
+    t0 = clock["t0_usec"] / 1e6
+    return t0 + (t_log_s - t0) * clock["rate"]
+
+
+def motors(a: tuple[np.ndarray, ...], throttle: np.ndarray | None, clock: dict | None) -> dict:
+    """The motors' field fitted over the readings with the motors running (see the module's doc), or
+    why not ("why")."""
+    if throttle is None or len(throttle) < 2:
+        return {"why": "no throttle in this log"}
+    t_thr = on_samples_clock(throttle[:, 0], clock)
+    order = np.argsort(t_thr)
+    u = np.interp(a[4], t_thr[order], throttle[order, 1], left=np.nan, right=np.nan)
+    running = np.isfinite(u) & (u > MIN_THROTTLE)
+    if running.sum() < 50:
+        return {"why": "the motors barely run under the compass's readings"}
+    u = np.clip(u[running], 0.0, 1.0)
+    u_med, spread = float(np.median(u)), float(np.percentile(u, 95) - np.percentile(u, 5))
+    if spread < MIN_THROTTLE_SPREAD:
+        return {"why": f"the throttle barely moves ({spread:.2f}): too little to show the motors' field"}
+    t, gamma, chi_m, stretch = (x[running] for x in a[:4])
+    _, stretch = np.unique(stretch, return_inverse=True)
+    iron_only, with_motors = fit(t, gamma, chi_m, stretch), fit(t, gamma, chi_m, stretch, u=u - u_med)
+    if iron_only is None or with_motors is None:
+        return {"why": "no field under the earth's fits its compass with the motors running"}
+    d, scatter, cov = with_motors
+    m, sigma = float(math.hypot(d[2], d[3])), float(math.sqrt(max(cov[-2, -2], cov[-1, -1], 0.0)))
+    return {"mx": float(d[2]), "my": float(d[3]), "sigma": sigma, "shown": sigma * spread < MAX_SIGMA,
+            "scatter_deg": math.degrees(scatter), "scatter_iron_only_deg": math.degrees(iron_only[1]),
+            "throttle_median": u_med, "throttle_spread": spread,
+            "over_spread_deg": math.degrees(math.asin(min(m * spread, 1.0)))}
+
+
 def deviation_of(path: str) -> dict:
     """One log's fit, as a JSON-ready dict (an "error" where it has none)."""
     h = Headings()
     try:
-        replay(path, listeners=[h])
+        report = replay(path, listeners=[h])
     except GuardError as e:
         return {"log": path, "error": str(e)}
     except Exception as e:                  # noqa: BLE001 - one unreadable log is named, the others still run
@@ -194,13 +299,20 @@ def deviation_of(path: str) -> dict:
     if covered < MIN_COVER_DEG:
         return {"log": path, "shown": False, "covered_deg": covered,
                 "why": f"its headings cover {covered:.0f} degrees, too few to show an iron"}
-    with_iron, without = fit(*a), fit(*a, iron=False)
+    with_iron, without = fit(*a[:4]), fit(*a[:4], iron=False)
     if with_iron is None or without is None:
         return {"log": path, "error": "no iron under the field fits its compass"}
     d, scatter, cov = with_iron
     f = Fit(float(d[0]), float(d[1]), float(math.sqrt(max(cov[-2, -2], cov[-1, -1], 0.0))),
             math.degrees(scatter), math.degrees(without[1]), covered)
-    return {"log": path, **asdict(f), "max_deviation_deg": f.max_deviation_deg, "shown": f.shown}
+    try:
+        throttle = throttle_of(path)
+    except Exception as e:                  # noqa: BLE001 - the iron is still shown
+        throttle, why = None, f"its throttle could not be read ({type(e).__name__}: {e})"
+    else:
+        why = None
+    mot = motors(a, throttle, report.get("clock")) if why is None else {"why": why}
+    return {"log": path, **asdict(f), "max_deviation_deg": f.max_deviation_deg, "shown": f.shown, "motors": mot}
 
 
 def show(r: dict) -> None:
@@ -217,6 +329,16 @@ def show(r: dict) -> None:
           f"horizontal field (+-{r['sigma']:.3f}); the compass against the gyro "
           f"{r['scatter_deg']:.1f} degrees with it, {r['scatter_without_deg']:.1f} without; "
           f"headings over {r['covered_deg']:.0f} degrees")
+    m = r["motors"]
+    if "why" in m:
+        print(f"  the motors' field: not fitted: {m['why']}")
+        return
+    shown = m["shown"]
+    print(f"  the motors' field: {m['mx']:+.3f} forward, {m['my']:+.3f} right per unit of throttle "
+          f"(+-{m['sigma']:.3f}{'' if shown else ', not shown'}), turning the heading by up to "
+          f"{m['over_spread_deg']:.1f} degrees over the throttle's usual spread ({m['throttle_spread']:.2f} about "
+          f"{m['throttle_median']:.2f}); with the motors running the compass against the gyro "
+          f"{m['scatter_deg']:.1f} degrees with it, {m['scatter_iron_only_deg']:.1f} with the iron alone")
 
 
 def main(argv=None) -> int:

@@ -5,9 +5,11 @@ import json
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from conftest import ROOT
+from guard.sources.base import as_logged
 from guard_sim import scenario as scn
 from guard_sim.run import run
 
@@ -56,3 +58,61 @@ def test_a_missing_log_is_named_and_a_broken_one_skipped(tmp_path):
     (tmp_path / "broken.tlog").write_bytes(b"\xfe\x00garbage")
     got = tool(tmp_path)
     assert got.returncode == 0 and got.stdout.startswith("broken.tlog: skipped: "), got.stdout + got.stderr
+
+
+def deviation_module():
+    sys.path.insert(0, str(ROOT / "tools"))
+    import compass_deviation
+    return compass_deviation
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_a_motors_field_that_follows_the_throttle_is_told_from_the_iron(seed):
+    """A compass whose body field is an iron plus the motors' field times the throttle, read over five
+    minutes of turns while the throttle wanders: the fit finds the motors' field within 0.03 of the
+    horizontal field, and with it the compass's scatter about the gyro falls to the readings' own
+    noise; a compass with the iron alone shows no motors' field. The throttle is on the log's clock,
+    which guard put on its receiver's (the report's `clock`)."""
+    cd = deviation_module()
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, 300.0, 0.1)
+    gamma = 0.25 * t + 0.8 * np.sin(0.03 * t)                     # several turns, at a varying rate
+    u = np.clip(0.5 + 0.15 * np.sin(0.11 * t + seed) + 0.05 * np.sin(0.7 * t), 0.1, 1.0)
+    chi = 1.002 * gamma + 0.4 + 2e-4 * t                           # a gyro's scale and bias, a start
+    clock = {"t0_usec": 5_000_000, "rate": 1.002}
+    t_log = clock["t0_usec"] / 1e6 + (t + 100.0 - clock["t0_usec"] / 1e6) / clock["rate"]
+    back = [as_logged(round(1e6 * x), (clock["t0_usec"], clock["rate"])) / 1e6
+            for x in cd.on_samples_clock(t_log[::500], clock)]
+    assert back == pytest.approx(t_log[::500], abs=1e-6)         # the log's clock taken as guard takes it back
+    for m in ((0.25, -0.15), (0.0, 0.0)):
+        d_x = 0.1 + m[0] * (u - np.median(u))
+        d_y = -0.2 + m[1] * (u - np.median(u))
+        dev = cd.deviations(chi, d_x, d_y)[0]
+        chi_m = cd.wrap(chi + dev + rng.normal(0.0, np.radians(0.5), t.size))
+        a = (t, gamma, chi_m, np.zeros(t.size, dtype=int), t + 100.0)
+        got = cd.motors(a, np.column_stack([t_log, u]), clock)
+        assert abs(got["mx"] - m[0]) < 0.03 and abs(got["my"] - m[1]) < 0.03, (m, got)
+        if m != (0.0, 0.0):
+            assert got["shown"] and got["scatter_deg"] < 0.8 < got["scatter_iron_only_deg"], got
+        else:
+            assert got["scatter_deg"] == pytest.approx(got["scatter_iron_only_deg"], rel=0.1), got
+
+
+def test_the_throttle_is_read_from_dataflash_and_ulog_and_said_missing_elsewhere(shared, tmp_path):
+    """ArduPilot's CTUN.ThO and PX4's thrust are read on the log's own clock, from 0 to 1; a tlog has
+    none on the autopilot's clock, and the motors' field is then said not fitted, named."""
+    cd = deviation_module()
+    folder = shared / "data" / "real"
+    if not folder.is_dir():
+        pytest.skip(f"{folder} is not here (the shared data folder sits beside the project)")
+    for name in ("ardupilot_copter_pixhawk1_crash.bin", "px4_vtol_cubeorange_short.ulg"):
+        u = cd.throttle_of(str(folder / name))
+        assert u is not None and len(u) > 100 and np.all(np.diff(u[:, 0]) >= 0), name
+        assert 0.0 <= np.nanmin(u[:, 1]) and np.nanmax(u[:, 1]) <= 1.0 and np.nanmax(u[:, 1]) > 0.1, name
+    base = scn.load("clean")
+    run(dataclasses.replace(base, duration_s=120.0), 2, tlog=str(tmp_path / "clean.tlog"))
+    assert cd.throttle_of(str(tmp_path / "clean.tlog")) is None
+    got = tool(tmp_path, "--json", tmp_path / "out.json")
+    assert got.returncode == 0, got.stderr
+    assert json.loads((tmp_path / "out.json").read_text())[0]["motors"] == {"why": "no throttle in this log"}
+    assert "  the motors' field: not fitted: no throttle in this log" in got.stdout
