@@ -29,18 +29,19 @@ an IMU fast enough to integrate, or one that cannot be read, is named and skippe
 
 The motors' field. The motors' and the battery's current is a field in the body too, and it grows
 with the current: ArduPilot's compassmot calibration measures it per ampere or per unit of throttle.
-Where the log says the throttle u (0 to 1: ArduPilot's CTUN.ThO, older logs' ThrOut / 1000; PX4's
-thrust setpoint, vehicle_thrust_setpoint or actuator_controls_0; a tlog carries none on the
-autopilot's clock and is not read for it), the fit is made again with the body's field
+Where the log says a multicopter's throttle u (0 to 1: ArduCopter's CTUN.ThO, older logs' ThrOut
+/ 1000; PX4's multicopter thrust, vehicle_thrust_setpoint or actuator_controls_0, while
+vehicle_status says rotary wing; not a plane's, whose throttle is its forward motor's, nor a tlog's,
+whose VFR_HUD has no time of the autopilot's), the fit is made again with the body's field
 
     d(t) = d_0 + m (u(t) - u_med)
 
 m = (m_x, m_y) the motors' field per unit of throttle, d_0 the body's field at the flight's median
 throttle u_med (measured from it, so that d_0 and m are not one another's), fitted over the
 readings with the motors running (u over MIN_THROTTLE), and shown beside the iron's: the scatter
-with d_0 alone and with d_0 and m over the same readings, and the most by which m turns the heading
-as the throttle moves over its usual spread (its 5th to 95th percentile; shown where m's standard
-error times that spread is under MAX_SIGMA). Where a compassmot
+with d_0 alone and with d_0 and m over the same readings, and the most by which m turns the heading,
+over every heading, between the two ends of the throttle's usual spread (its 5th to 95th percentile;
+shown where m's standard error times that spread is under MAX_SIGMA). Where a compassmot
 calibration would take out much of the compass's error in flight, the two scatters differ by much.
 """
 
@@ -55,6 +56,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from guard.core.aiding.imu import level              # noqa: E402
+from guard.sources.dataflash.index import MAX_BOOT_US, Log, looks_like_dataflash, open_index   # noqa: E402
+from guard.sources.dataflash.survey import FIRMWARE   # noqa: E402
+from guard.sources.ulog.load import load, looks_like_ulog   # noqa: E402
 from guard.core.aiding.tilt import Tilt              # noqa: E402
 from guard.errors import GuardError                  # noqa: E402
 from guard.model.samples import Attitude, ImuSample  # noqa: E402
@@ -77,6 +81,8 @@ MIN_COVER_DEG = 180.0   # the headings read must cover this much of the circle f
 MIN_IMU_HZ = 8.0        # a slower IMU (telemetry) is not integrated, as guard does not (monitor.min_imu_hz)
 MIN_THROTTLE = 0.05     # the motors run (a throttle under this: idle or stopped)
 MIN_THROTTLE_SPREAD = 0.05   # the throttle's spread (its 95th percentile less its 5th) that can show m
+VEHICLE_TYPE_ROTARY_WING = 1    # PX4's vehicle_status.vehicle_type of a multicopter (or a VTOL hovering)
+BUILD_COPTER = {2: "copter"}    # ArduPilot's VER.BU of a multicopter (APM_BUILD_ArduCopter)
 
 
 class Headings:
@@ -163,7 +169,6 @@ def fit(t, gamma, chi_m, stretch, iron: bool = True,
                               np.cos(chi_m[stretch == j] - gamma[stretch == j]).mean()) for j in range(n_s)])
     n_d = 0 if not iron else 2 if u is None else 4
     k1, s, d = np.zeros(n_s), 0.0, np.zeros(n_d)
-    u_max = 0.0 if u is None else float(np.max(np.abs(u)))
     rows = np.arange(len(t))
     n_p = 2 * n_s + 1 + n_d
     for _ in range(ITERATIONS):
@@ -191,46 +196,48 @@ def fit(t, gamma, chi_m, stretch, iron: bool = True,
         if n_d:
             step *= min(1.0, MAX_STEP / max(float(np.linalg.norm(step[2 * n_s + 1:])), 1e-12))
             d += step[2 * n_s + 1:]
-            if math.hypot(d[0], d[1]) + (math.hypot(d[2], d[3]) * u_max if n_d == 4 else 0.0) > 1.0 - MIN_FIELD:
+            field = math.hypot(d[0], d[1]) if n_d == 2 else float(np.max(np.hypot(d[0] + d[2] * u, d[1] + d[3] * u)))
+            if field > 1.0 - MIN_FIELD:
                 return None
         k0 += step[:n_s]
         k1 += step[n_s:2 * n_s]
         s += step[2 * n_s]
-    seconds = sum(float(t[stretch == j].max()) for j in range(n_s))
+    seconds = sum(float(np.ptp(t[stretch == j])) for j in range(n_s))
     per_second = len(t) / max(seconds, 1e-6)
     return d, sigma, np.linalg.pinv(N) * sigma ** 2 * max(1.0, per_second * CORR_S)
 
 
-def throttle_of(path: str) -> np.ndarray | None:
-    """The log's throttle (t s on the log's own clock, u from 0 to 1), or None where it says none (a
-    tlog, whose VFR_HUD has no time of the autopilot's; a log without the messages)."""
+def throttle_of(path: str) -> tuple[np.ndarray | None, str]:
+    """A multicopter's throttle (rows of t s on the log's own clock, u from 0 to 1), or None and why not."""
     with open(path, "rb") as f:
         head = f.read(16)
-    if head.startswith(b"ULog"):
+    if looks_like_ulog(head):
         return _ulog_throttle(path)
-    if head[:2] == b"\xa3\x95":                 # a DataFlash log's message header
+    if looks_like_dataflash(head):
         return _dataflash_throttle(path)
-    return None
+    return None, "a tlog's throttle (VFR_HUD) has no time of the autopilot's: not read"
 
 
-def _dataflash_throttle(path: str) -> np.ndarray | None:
-    from pymavlink import DFReader
-    log = DFReader.DFReader_binary(path, zero_time_base=True)
-    rows = []
-    while (m := log.recv_match(type=["CTUN"])) is not None:
-        u = getattr(m, "ThO", None)
-        if u is None and getattr(m, "ThrOut", None) is not None:
-            u = m.ThrOut / 1000.0                    # older logs: per mille
-        t = m.TimeUS / 1e6 if getattr(m, "TimeUS", None) is not None else m.TimeMS / 1e3
-        if u is not None and math.isfinite(u):
-            rows.append((t, u))
-    return np.array(rows, dtype=float) if rows else None
+def _dataflash_throttle(path: str) -> tuple[np.ndarray | None, str]:
+    log = Log(open_index(path))
+    kind = next((m.group(1).lower() for _, text in log.texts("MSG", "Message") if (m := FIRMWARE.match(text))), None)
+    if kind is None and log.format("VER") is not None and "BU" in log.format("VER").colhash:
+        kind = next((BUILD_COPTER.get(build, f"build {build}") for _, build in log.rows("VER", ["BU"])), None)
+    if kind != "copter":
+        return None, f"its throttle is not a multicopter's lift (the log says {kind or 'no vehicle'})"
+    fmt = log.format("CTUN")
+    column = next((c for c in ("ThO", "ThrOut") if fmt is not None and c in fmt.colhash), None)
+    if column is None:
+        return None, "no throttle in this log (CTUN.ThO or ThrOut)"
+    scale = 1.0 if column == "ThO" else 1e-3                # older logs: per mille
+    rows = [(t / 1e6, u * scale) for t, u in log.rows("CTUN", [column])
+            if 0 <= t < MAX_BOOT_US and u is not None and math.isfinite(u)]
+    return (np.array(rows, dtype=float), "") if rows else (None, "no throttle in this log (CTUN without time)")
 
 
-def _ulog_throttle(path: str) -> np.ndarray | None:
-    from pyulog import ULog
-    log = ULog(path, ["vehicle_thrust_setpoint", "actuator_controls_0"])
-    found = {d.name: d.data for d in log.data_list if d.multi_id == 0}
+def _ulog_throttle(path: str) -> tuple[np.ndarray | None, str]:
+    ulog, _ = load(path, ["vehicle_thrust_setpoint", "actuator_controls_0", "vehicle_status"])
+    found = {d.name: d.data for d in ulog.data_list if d.multi_id == 0}
     if "vehicle_thrust_setpoint" in found and "xyz[2]" in found["vehicle_thrust_setpoint"]:
         d = found["vehicle_thrust_setpoint"]
         u = -d["xyz[2]"]                            # up is -z (FRD)
@@ -238,8 +245,17 @@ def _ulog_throttle(path: str) -> np.ndarray | None:
         d = found["actuator_controls_0"]
         u = d["control[3]"]
     else:
-        return None
-    return np.column_stack([d["timestamp"] / 1e6, u]).astype(float)
+        return None, "no throttle in this log (vehicle_thrust_setpoint, actuator_controls_0)"
+    t = d["timestamp"] / 1e6
+    status = found.get("vehicle_status", {})
+    if "vehicle_type" in status:                    # a multicopter's thrust only while it flies as one
+        ts = status["timestamp"] / 1e6
+        latest = np.clip(np.searchsorted(ts, t, side="right") - 1, 0, len(ts) - 1)
+        rotary = status["vehicle_type"][latest] == VEHICLE_TYPE_ROTARY_WING
+        t, u = t[rotary], u[rotary]
+    if not len(t):
+        return None, "its throttle is not a multicopter's lift (it never flies as one)"
+    return np.column_stack([t, u]).astype(float), ""
 
 
 def on_samples_clock(t_log_s: np.ndarray, clock: dict | None) -> np.ndarray:
@@ -251,10 +267,10 @@ def on_samples_clock(t_log_s: np.ndarray, clock: dict | None) -> np.ndarray:
     return t0 + (t_log_s - t0) * clock["rate"]
 
 
-def motors(a: tuple[np.ndarray, ...], throttle: np.ndarray | None, clock: dict | None) -> dict:
+def motors(a: tuple[np.ndarray, ...], throttle: np.ndarray, clock: dict | None) -> dict:
     """The motors' field fitted over the readings with the motors running (see the module's doc), or
     why not ("why")."""
-    if throttle is None or len(throttle) < 2:
+    if len(throttle) < 2:
         return {"why": "no throttle in this log"}
     t_thr = on_samples_clock(throttle[:, 0], clock)
     order = np.argsort(t_thr)
@@ -272,11 +288,20 @@ def motors(a: tuple[np.ndarray, ...], throttle: np.ndarray | None, clock: dict |
     if iron_only is None or with_motors is None:
         return {"why": "no field under the earth's fits its compass with the motors running"}
     d, scatter, cov = with_motors
-    m, sigma = float(math.hypot(d[2], d[3])), float(math.sqrt(max(cov[-2, -2], cov[-1, -1], 0.0)))
+    sigma = float(math.sqrt(max(cov[-2, -2], cov[-1, -1], 0.0)))
     return {"mx": float(d[2]), "my": float(d[3]), "sigma": sigma, "shown": sigma * spread < MAX_SIGMA,
             "scatter_deg": math.degrees(scatter), "scatter_iron_only_deg": math.degrees(iron_only[1]),
-            "throttle_median": u_med, "throttle_spread": spread,
-            "over_spread_deg": math.degrees(math.asin(min(m * spread, 1.0)))}
+            "throttle_median": u_med, "throttle_spread": spread, "over_spread_deg": turned_by(d, spread)}
+
+
+def turned_by(d: np.ndarray, spread: float) -> float:
+    """The most (degrees, over every heading) by which the motors' field m turns the heading between
+    the throttle half its spread below the median and half above: the field's deviation computed at
+    both, the iron d_0 with it (a field weakened by the iron turns further)."""
+    chi = np.linspace(-np.pi, np.pi, 721)
+    lo = deviations(chi, d[0] - d[2] * spread / 2, d[1] - d[3] * spread / 2)[0]
+    hi = deviations(chi, d[0] + d[2] * spread / 2, d[1] + d[3] * spread / 2)[0]
+    return math.degrees(float(np.max(np.abs(wrap(hi - lo)))))
 
 
 def deviation_of(path: str) -> dict:
@@ -306,12 +331,10 @@ def deviation_of(path: str) -> dict:
     f = Fit(float(d[0]), float(d[1]), float(math.sqrt(max(cov[-2, -2], cov[-1, -1], 0.0))),
             math.degrees(scatter), math.degrees(without[1]), covered)
     try:
-        throttle = throttle_of(path)
-    except Exception as e:                  # noqa: BLE001 - the iron is still shown
-        throttle, why = None, f"its throttle could not be read ({type(e).__name__}: {e})"
-    else:
-        why = None
-    mot = motors(a, throttle, report.get("clock")) if why is None else {"why": why}
+        throttle, why = throttle_of(path)
+    except GuardError as e:                 # the iron is still shown
+        throttle, why = None, f"its throttle could not be read: {e}"
+    mot = motors(a, throttle, report.get("clock")) if throttle is not None else {"why": why}
     return {"log": path, **asdict(f), "max_deviation_deg": f.max_deviation_deg, "shown": f.shown, "motors": mot}
 
 

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from conftest import ROOT
+from guard.runtime.replay import replay
 from guard.sources.base import as_logged
 from guard_sim import scenario as scn
 from guard_sim.run import run
@@ -98,21 +99,63 @@ def test_a_motors_field_that_follows_the_throttle_is_told_from_the_iron(seed):
             assert got["scatter_deg"] == pytest.approx(got["scatter_iron_only_deg"], rel=0.1), got
 
 
-def test_the_throttle_is_read_from_dataflash_and_ulog_and_said_missing_elsewhere(shared, tmp_path):
-    """ArduPilot's CTUN.ThO and PX4's thrust are read on the log's own clock, from 0 to 1; a tlog has
-    none on the autopilot's clock, and the motors' field is then said not fitted, named."""
+def test_the_throttle_is_read_on_the_compass_s_clock_from_dataflash_and_ulog(shared):
+    """ArduCopter's CTUN.ThO and a PX4 VTOL's multicopter thrust while it hovers are read from 0 to 1
+    on the log's own clock, which is the compass readings' (the crash flight's throttle spans its
+    readings, and the motors' fit runs on them)."""
     cd = deviation_module()
     folder = shared / "data" / "real"
     if not folder.is_dir():
         pytest.skip(f"{folder} is not here (the shared data folder sits beside the project)")
     for name in ("ardupilot_copter_pixhawk1_crash.bin", "px4_vtol_cubeorange_short.ulg"):
-        u = cd.throttle_of(str(folder / name))
-        assert u is not None and len(u) > 100 and np.all(np.diff(u[:, 0]) >= 0), name
-        assert 0.0 <= np.nanmin(u[:, 1]) and np.nanmax(u[:, 1]) <= 1.0 and np.nanmax(u[:, 1]) > 0.1, name
+        u, why = cd.throttle_of(str(folder / name))
+        assert u is not None and why == "" and len(u) > 100 and np.all(np.diff(u[:, 0]) >= 0), (name, why)
+        assert 0.0 <= u[:, 1].min() and u[:, 1].max() <= 1.0 and u[:, 1].max() > 0.3, name
+    crash = str(folder / "ardupilot_copter_pixhawk1_crash.bin")
+    h = cd.Headings()
+    report = replay(crash, listeners=[h])
+    readings = h.arrays()[4]
+    u, _ = cd.throttle_of(crash)
+    t = cd.on_samples_clock(u[:, 0], report.get("clock"))
+    flying = t[u[:, 1] > cd.MIN_THROTTLE]
+    assert flying[0] < readings[0] + 60 and readings[-1] - 10 < flying[-1] <= readings[-1] + 5, (flying[[0, -1]],
+                                                                                                readings[[0, -1]])
+    got = cd.motors(h.arrays(), u, report.get("clock"))
+    assert "mx" in got and got["throttle_spread"] > 0.1, got
+
+
+def test_a_tlog_s_throttle_is_not_read_and_said(tmp_path):
+    """A tlog has no throttle on the autopilot's clock: the motors' field is said not fitted, and why."""
+    cd = deviation_module()
     base = scn.load("clean")
     run(dataclasses.replace(base, duration_s=120.0), 2, tlog=str(tmp_path / "clean.tlog"))
-    assert cd.throttle_of(str(tmp_path / "clean.tlog")) is None
+    assert cd.throttle_of(str(tmp_path / "clean.tlog"))[0] is None
     got = tool(tmp_path, "--json", tmp_path / "out.json")
     assert got.returncode == 0, got.stderr
-    assert json.loads((tmp_path / "out.json").read_text())[0]["motors"] == {"why": "no throttle in this log"}
-    assert "  the motors' field: not fitted: no throttle in this log" in got.stdout
+    why = json.loads((tmp_path / "out.json").read_text())[0]["motors"]["why"]
+    assert why.startswith("a tlog's throttle (VFR_HUD) has no time of the autopilot's"), why
+    assert f"  the motors' field: not fitted: {why}" in got.stdout
+
+
+def test_an_older_copter_s_throttle_in_per_mille_and_a_plane_s_refused(tmp_path):
+    """An older ArduCopter log's CTUN gives ThrOut in per mille and TimeMS: read as 0 to 1 and seconds;
+    the same from an ArduPlane, whose throttle is its forward motor's, is not read, and said."""
+    from guard_sim.dataflash import FMT, HEADER, MSG, LogFormat
+    cd = deviation_module()
+    ctun = LogFormat(140, "CTUN", "IhH", "TimeMS,ThrIn,ThrOut")
+    for firmware, read in (("APM:Copter V3.2.1", True), ("ArduPlane V3.1.2", False)):
+        path = tmp_path / f"{firmware.split()[0].replace(':', '')}.bin"
+        with open(path, "wb") as f:
+            for fmt in (FMT, MSG, ctun):
+                f.write(HEADER + bytes((FMT.type,)) + FMT.body.pack(fmt.type, fmt.length, fmt.name.encode(),
+                                                                     fmt.format.encode(), fmt.columns.encode()))
+            f.write(HEADER + bytes((MSG.type,)) + MSG.body.pack(1000, firmware.encode()))
+            for k in range(200):
+                f.write(HEADER + bytes((ctun.type,)) + ctun.body.pack(20_000 + 100 * k, 500, 300 + 2 * k))
+        u, why = cd.throttle_of(str(path))
+        if read:
+            assert why == "" and u.shape == (200, 2), why
+            assert u[0, 0] == pytest.approx(20.0) and u[-1, 0] == pytest.approx(39.9)
+            assert u[0, 1] == pytest.approx(0.3) and u[-1, 1] == pytest.approx(0.698)
+        else:
+            assert u is None and why == "its throttle is not a multicopter's lift (the log says plane)", why

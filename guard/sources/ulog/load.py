@@ -62,8 +62,9 @@ class _TrackedFile:
         """pyulog closes its file when done; the reader closes its own."""
 
 
-def load(path: str) -> tuple[ULog, int | None]:
-    """pyulog's reading of the topics guard uses, and the offset where it stopped short (None: at the end)."""
+def load(path: str, topics: list[str] | None = None) -> tuple[ULog, int | None]:
+    """pyulog's reading of the topics guard uses (or of `topics`), and the offset where it stopped short
+    (None: at the end)."""
     try:
         f = open(path, "rb")
     except OSError as e:
@@ -71,7 +72,7 @@ def load(path: str) -> tuple[ULog, int | None]:
     with f, printed() as said:
         tracked = _TrackedFile(f)
         try:
-            ulog = ULog(tracked, message_name_filter_list=TOPICS)
+            ulog = ULog(tracked, message_name_filter_list=TOPICS if topics is None else topics)
         except ULogException as e:
             raise SourceError(f"{path}: not a ULog file guard can read ({e})") from None
         except OSError as e:
