@@ -105,7 +105,7 @@ def read(path: str) -> dict[str, np.ndarray]:
             "vibe": np.array(vibe, dtype=float).reshape(-1, 5), "format": "dataflash"}
 
 
-def as_logged(t_us: int, clock: dict | None) -> int:
+def report_time_as_logged(t_us: int, clock: dict | None) -> int:
     """A time of guard's report back on the log's own clock, where the autopilot's records are: the
     report's times are on the receiver's clock where the autopilot's did not keep time (its `clock`)."""
     from guard.sources.base import as_logged as back
@@ -229,7 +229,7 @@ def main(argv: list[str] | None = None) -> int:
         alarms = report["alarms"]
         if not alarms:
             print(f"{args.log}: guard raised no alarm; --at T to look at a time")
-    times = [(as_logged(a["time_usec"], report.get("clock")) / 1e6, a) for a in alarms] \
+    times = [(report_time_as_logged(a["time_usec"], report.get("clock")) / 1e6, a) for a in alarms] \
         or [(t, None) for t in args.at or []]
     views = []
     for t, alarm in times:

@@ -49,7 +49,7 @@ from guard.core.geo import LocalFrame                # noqa: E402
 from guard.model.samples import GnssFix, ImuSample   # noqa: E402
 from guard.runtime.replay import replay              # noqa: E402
 import pymap3d                                       # noqa: E402
-from tools.autopilot_view import SAW_TOP, as_logged, read_log, saw_too, view   # noqa: E402
+from tools.autopilot_view import SAW_TOP, read_log, report_time_as_logged, saw_too, view   # noqa: E402
 from tools.autopilot_view import WINDOW_S as AUTOPILOT_WINDOW_S                 # noqa: E402
 
 SUFFIXES = {".tlog", ".bin", ".ulg"}
@@ -182,7 +182,8 @@ def autopilot_saw(path: str, report: dict) -> list[int] | str:
         data = read_log(path, report["format"])
     except Exception as e:          # noqa: BLE001 - pymavlink and pyulog raise what they raise on a corrupt file
         return f"the autopilot's innovations could not be read ({type(e).__name__}: {e})"
-    said = [saw_too(view(data, as_logged(a["time_usec"], report.get("clock")) / 1e6, AUTOPILOT_WINDOW_S), a)
+    clock = report.get("clock")
+    said = [saw_too(view(data, report_time_as_logged(a["time_usec"], clock) / 1e6, AUTOPILOT_WINDOW_S), a)
             for a in report["alarms"] if a["sensor"] == "gnss_vel"]
     return [sum(x is True for x in said), sum(x is not None for x in said)]
 

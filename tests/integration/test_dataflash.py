@@ -341,7 +341,7 @@ def test_an_autopilot_clock_running_slow_is_put_on_the_receivers_time(paper, tmp
     assert abs(slow["clock"]["rate"] - 1.08) < 1e-3
     # and back on the log's own clock, where the autopilot's other records are (tools/autopilot_view.py)
     view = load_tool("autopilot_view")
-    assert abs(view.as_logged(verdict["time_usec"], slow["clock"]) - 20e6 / 1.08) < 2e4
+    assert abs(view.report_time_as_logged(verdict["time_usec"], slow["clock"]) - 20e6 / 1.08) < 2e4
 
 
 def test_a_receiver_time_that_jumps_corrects_nothing(paper, tmp_path):
