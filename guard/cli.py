@@ -26,7 +26,9 @@ def _replay(args) -> int:
     if args.detector:
         cfg = replace(cfg, monitor=replace(cfg.monitor, detector=replace(cfg.monitor.detector, name=args.detector)))
     cfg = _with_system_id(cfg, args.system_id)
-    listeners = []
+    from guard.runtime.deviation import Headings, iron_of, said
+    headings = Headings()                   # the compass against the gyro over the whole log
+    listeners = [headings]
     trace = Trace() if args.plot else None
     if trace:
         listeners.append(trace)
@@ -42,6 +44,9 @@ def _replay(args) -> int:
     finally:
         if log:
             log.close()
+    iron = iron_of(headings)
+    iron.pop("arrays", None)
+    report["compass_deviation"] = iron
     if args.report:
         write_report(report, args.report)
     if args.plot:
@@ -65,6 +70,8 @@ def _replay(args) -> int:
                   f"more than {FixGap.FAR_M:g} m at {100 * gap[f'share_over_{FixGap.FAR_M:g}']:.1f} % of them")
         for note in report["notes"]:
             print(f"  {note}")
+        if line := said(iron, sum(1 for a in alarms if a["sensor"] == "mag")):
+            print(f"  {line}")
         for reason, n in sorted(report["skipped"].items(), key=lambda kv: -kv[1]):
             print(f"  skipped {n} {SKIPPED.get(reason, reason.replace('_', ' '))}")
     return 0

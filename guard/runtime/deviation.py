@@ -54,6 +54,9 @@ GYRO_SCALE = 0.01       # the gyro's scale error, 1 sigma (a calibrated MEMS gyr
                         # parameter, as over half a circle a deviation looks like a scale error
 MIN_COVER_DEG = 180.0   # the headings read must cover this much of the circle for the iron to be shown
 MIN_IMU_HZ = 8.0        # a slower IMU (telemetry) is not integrated, as guard does not (monitor.min_imu_hz)
+SAY_DEG = 5.0           # a deviation shown this large is said by guard replay: over the magnetometer's default
+                        # floor (filter.heading_sigma_rad, 1.7 degrees) three times, beyond what b_psi and
+                        # the floor together hold as the vehicle turns
 
 
 class Headings:
@@ -199,3 +202,15 @@ def iron_of(h: Headings) -> dict:
     f = Fit(float(d[0]), float(d[1]), float(math.sqrt(max(cov[-2, -2], cov[-1, -1], 0.0))),
             math.degrees(scatter), math.degrees(without[1]), covered)
     return {**asdict(f), "max_deviation_deg": f.max_deviation_deg, "shown": f.shown, "arrays": a}
+
+
+def said(iron: dict, mag_alarms: int) -> str | None:
+    """guard replay's line on what iron_of found, where it shows a deviation of SAY_DEG or more (and
+    how many of the log's alarms, `mag_alarms`, were the magnetometer's)."""
+    if not iron.get("shown") or iron["max_deviation_deg"] < SAY_DEG:
+        return None
+    alarms = f"; its {mag_alarms} magnetometer alarm(s) may be that" if mag_alarms else ""
+    return (f"the compass reads up to {iron['max_deviation_deg']:.0f} degrees off depending on the heading (a field "
+            f"fixed to the body, fitted against the gyro over {iron['covered_deg']:.0f} degrees of turns: "
+            f"{iron['scatter_deg']:.1f} degrees of scatter with it, {iron['scatter_without_deg']:.1f} without): "
+            f"its calibration or its place, which guard's one compass offset cannot hold{alarms}")
