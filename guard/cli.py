@@ -26,7 +26,7 @@ def _replay(args) -> int:
     if args.detector:
         cfg = replace(cfg, monitor=replace(cfg.monitor, detector=replace(cfg.monitor.detector, name=args.detector)))
     cfg = _with_system_id(cfg, args.system_id)
-    from guard.runtime.deviation import Headings, iron_of, said
+    from guard.runtime.deviation import Headings, compass_fits, said
     headings = Headings()                   # the compass against the gyro over the whole log
     listeners = [headings]
     trace = Trace() if args.plot else None
@@ -44,9 +44,8 @@ def _replay(args) -> int:
     finally:
         if log:
             log.close()
-    iron = iron_of(headings)
-    iron.pop("arrays", None)
-    report["compass_deviation"] = iron
+    iron, before, first_s = compass_fits(headings, report)
+    report["compass_deviation"] = {**iron, **({"before_first_alarm": before} if before else {})}
     if args.report:
         write_report(report, args.report)
     if args.plot:
@@ -70,7 +69,7 @@ def _replay(args) -> int:
                   f"more than {FixGap.FAR_M:g} m at {100 * gap[f'share_over_{FixGap.FAR_M:g}']:.1f} % of them")
         for note in report["notes"]:
             print(f"  {note}")
-        if line := said(iron, sum(1 for a in alarms if a["sensor"] == "mag")):
+        if line := said(iron, before, first_s):
             print(f"  {line}")
         for reason, n in sorted(report["skipped"].items(), key=lambda kv: -kv[1]):
             print(f"  skipped {n} {SKIPPED.get(reason, reason.replace('_', ' '))}")

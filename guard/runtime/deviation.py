@@ -54,13 +54,20 @@ GYRO_SCALE = 0.01       # the gyro's scale error, 1 sigma (a calibrated MEMS gyr
                         # parameter, as over half a circle a deviation looks like a scale error
 MIN_COVER_DEG = 180.0   # the headings read must cover this much of the circle for the iron to be shown
 MIN_IMU_HZ = 8.0        # a slower IMU (telemetry) is not integrated, as guard does not (monitor.min_imu_hz)
-SAY_DEG = 5.0           # a deviation shown this large is said by guard replay: over the magnetometer's default
-                        # floor (filter.heading_sigma_rad, 1.7 degrees) three times, beyond what b_psi and
-                        # the floor together hold as the vehicle turns
+MAX_STRETCHES = 30      # the longest stretches fitted, at most (each has its own start and gyro bias)
+MAX_ROWS = 40_000       # readings fitted, at most: over half an hour of them
+SAY_DEG = 5.0           # a deviation this large guard replay says, where its fit shows it beyond its own
+                        # error (its size less twice its standard error) and explains the compass (its
+                        # scatter under EXPLAINS of the scatter without it): about three times the
+                        # magnetometer's default floor (filter.heading_sigma_rad, 1.7 degrees)
+EXPLAINS = 0.7
 
 
 class Headings:
-    """A replay's listener: each compass reading's heading and the gyro's integral since its stretch began."""
+    """A replay's listener: each compass reading's heading and the gyro's integral since its stretch began.
+    It reads samples only (the monitor need not record its tests for it)."""
+
+    needs_tests = False
 
     def __init__(self):
         self.tilt = Tilt()
@@ -68,6 +75,7 @@ class Headings:
         self._t: int | None = None
         self._gamma = 0.0
         self.intervals: list[int] = []
+        self.imu_samples = 0
 
     def on_sample(self, sample) -> None:
         if isinstance(sample, Attitude):
@@ -75,6 +83,7 @@ class Headings:
             return
         if not isinstance(sample, ImuSample):
             return
+        self.imu_samples += 1
         _, _, rate, mag, _, _ = level(sample, *self.tilt.at(sample))
         if self._t is None or not 0 < sample.t_us - self._t <= GAP_S * 1e6:
             self.stretches.append([])
@@ -91,12 +100,23 @@ class Headings:
     def on_events(self, events) -> None:
         pass
 
-    def arrays(self) -> tuple[np.ndarray, ...] | None:
+    def arrays(self, until_s: float | None = None) -> tuple[np.ndarray, ...] | None:
         """(t from its stretch's start, Gamma, chi_m, stretch number) of the stretches long enough, and
-        each reading's time on the samples' clock (s)."""
-        kept = [np.array(r) for r in self.stretches if len(r) > 20 and r[-1][0] - r[0][0] >= MIN_STRETCH_S]
+        each reading's time on the samples' clock (s); only the readings before `until_s` (s, on that
+        clock) where given. At most MAX_STRETCHES stretches, the longest, and MAX_ROWS readings, every
+        k-th where there are more (a long log with many gaps would otherwise make the fit's matrix,
+        readings by twice the stretches, too large)."""
+        rows = (self.stretches if until_s is None else
+                [[x for x in r if x[0] < until_s] for r in self.stretches])
+        kept = [np.array(r) for r in rows if len(r) > 20 and r[-1][0] - r[0][0] >= MIN_STRETCH_S]
         if not kept:
             return None
+        if len(kept) > MAX_STRETCHES:
+            longest = sorted(range(len(kept)), key=lambda j: kept[j][-1, 0] - kept[j][0, 0])[-MAX_STRETCHES:]
+            kept = [kept[j] for j in sorted(longest)]
+        every = -(-sum(len(a) for a in kept) // MAX_ROWS)
+        if every > 1:
+            kept = [a[::every] for a in kept]
         return (np.concatenate([a[:, 0] - a[0, 0] for a in kept]), np.concatenate([a[:, 1] for a in kept]),
                 np.concatenate([a[:, 2] for a in kept]),
                 np.concatenate([np.full(len(a), j) for j, a in enumerate(kept)]),
@@ -181,36 +201,75 @@ def fit(t, gamma, chi_m, stretch, iron: bool = True,
     return d, sigma, np.linalg.pinv(N) * sigma ** 2 * max(1.0, per_second * CORR_S)
 
 
-def iron_of(h: Headings) -> dict:
+def iron_of(h: Headings, before_us: int | None = None) -> dict:
     """What a replay's Headings show of the compass's iron, JSON-ready: the Fit's fields, its largest
-    deviation and whether the turns show it ("shown"); "why" where there is too little turning to
-    fit, "error" where nothing could be fitted. `arrays` holds what was fitted (not JSON)."""
+    deviation and whether the turns show it ("shown"); where nothing was fitted, "shown" False and
+    "why" (too little turning) or "error" (nothing to fit). Only the readings before `before_us` (on
+    the samples' clock) where given: "before" then says so. `arrays` holds what was fitted (not JSON)."""
+    cut = {} if before_us is None else {"before_us": before_us}
     hz = 1e6 / float(np.median(h.intervals)) if h.intervals else 0.0
+    if not h.intervals:
+        why = (f"its IMU never twice within {GAP_S:g} s, too slow to integrate the gyro" if h.imu_samples
+               else "no IMU samples to integrate the gyro")
+        return {"shown": False, "error": why, **cut}
     if hz < MIN_IMU_HZ:
-        return {"error": f"its IMU at {hz:.1f} Hz, too slow to integrate the gyro"}
-    a = h.arrays()
+        return {"shown": False, "error": f"its IMU at {hz:.1f} Hz, too slow to integrate the gyro", **cut}
+    a = h.arrays(None if before_us is None else before_us / 1e6)
     if a is None:
-        return {"error": f"no stretch of compass readings with the IMU of {MIN_STRETCH_S:g} s or more"}
-    covered = np.unique(np.floor(np.degrees(np.remainder(a[2], 2 * np.pi)) / 10.0)).size * 10.0
+        return {"shown": False, **cut,
+                "error": f"no stretch of compass readings with the IMU of {MIN_STRETCH_S:g} s or more"}
+    covered = float(np.unique(np.floor(np.degrees(np.remainder(a[2], 2 * np.pi)) / 10.0)).size * 10.0)
     if covered < MIN_COVER_DEG:
-        return {"shown": False, "covered_deg": covered,
+        return {"shown": False, "covered_deg": covered, **cut,
                 "why": f"its headings cover {covered:.0f} degrees, too few to show an iron"}
     with_iron, without = fit(*a[:4]), fit(*a[:4], iron=False)
     if with_iron is None or without is None:
-        return {"error": "no iron under the field fits its compass"}
+        return {"shown": False, "error": "no iron under the field fits its compass", **cut}
     d, scatter, cov = with_iron
     f = Fit(float(d[0]), float(d[1]), float(math.sqrt(max(cov[-2, -2], cov[-1, -1], 0.0))),
             math.degrees(scatter), math.degrees(without[1]), covered)
-    return {**asdict(f), "max_deviation_deg": f.max_deviation_deg, "shown": f.shown, "arrays": a}
+    return {**asdict(f), "max_deviation_deg": f.max_deviation_deg, "shown": f.shown, **cut, "arrays": a}
 
 
-def said(iron: dict, mag_alarms: int) -> str | None:
-    """guard replay's line on what iron_of found, where it shows a deviation of SAY_DEG or more (and
-    how many of the log's alarms, `mag_alarms`, were the magnetometer's)."""
-    if not iron.get("shown") or iron["max_deviation_deg"] < SAY_DEG:
+def explains(iron: dict) -> bool:
+    """Whether a fit shows a deviation of SAY_DEG or more beyond its own error (its size less twice its
+    standard error) that explains the compass's readings (their scatter under EXPLAINS of it without)."""
+    return (bool(iron.get("shown")) and iron["max_deviation_deg"] >= SAY_DEG
+            and math.hypot(iron["dx"], iron["dy"]) - 2.0 * iron["sigma"] >= math.sin(math.radians(SAY_DEG))
+            and iron["scatter_deg"] <= EXPLAINS * iron["scatter_without_deg"])
+
+
+def said(whole: dict, before: dict | None = None, first_alarm_s: float | None = None) -> str | None:
+    """guard replay's line on the compass's iron: `whole` fitted over the whole log, `before` over the
+    readings before the magnetometer's first alarm (at `first_alarm_s`, the log's time), where it
+    had one. A field that came in flight (an attack on the compass, a part come loose) fits as an iron
+    too: the line blames the compass's calibration only where the readings before its first alarm show
+    the iron; where they turned too little to show it, it says both and when the first alarm came."""
+    fit_ = before if before is not None and explains(before) else whole if explains(whole) else None
+    if fit_ is None:
         return None
-    alarms = f"; its {mag_alarms} magnetometer alarm(s) may be that" if mag_alarms else ""
-    return (f"the compass reads up to {iron['max_deviation_deg']:.0f} degrees off depending on the heading (a field "
-            f"fixed to the body, fitted against the gyro over {iron['covered_deg']:.0f} degrees of turns: "
-            f"{iron['scatter_deg']:.1f} degrees of scatter with it, {iron['scatter_without_deg']:.1f} without): "
-            f"its calibration or its place, which guard's one compass offset cannot hold{alarms}")
+    size = (f"up to {fit_['max_deviation_deg']:.0f} degrees off depending on the heading (a field fixed to the body, "
+            f"fitted against the gyro over {fit_['covered_deg']:.0f} degrees of turns: {fit_['scatter_deg']:.1f} "
+            f"degrees of scatter with it, {fit_['scatter_without_deg']:.1f} without)")
+    cause = "its calibration or its place, which guard's one compass offset cannot hold"
+    if fit_ is before:
+        return f"the compass read {size} before its first alarm: {cause}"
+    if first_alarm_s is None:
+        return f"the compass read {size} over the whole log: {cause}"
+    return (f"the compass read {size} over the whole log: {cause}, if it was so from the start; a field that came "
+            f"in flight (an attack on the compass, a part come loose) fits alike, and the magnetometer's first "
+            f"alarm came at {first_alarm_s:.1f} s of the log's time, before the compass had turned enough to show "
+            "which")
+
+
+def compass_fits(h: Headings, report: dict) -> tuple[dict, dict | None, float | None]:
+    """A replay's fits, JSON-ready: over the whole log, over the readings before the magnetometer's
+    first alarm (None without one), and that alarm's time (s, as the report's times)."""
+    first = min((a["time_usec"] for a in report["alarms"] if a["sensor"] == "mag"), default=None)
+    whole = iron_of(h)
+    whole.pop("arrays", None)
+    if first is None:
+        return whole, None, None
+    before = iron_of(h, first)
+    before.pop("arrays", None)
+    return whole, before, first / 1e6

@@ -54,7 +54,8 @@ def replay(path: str, cfg: Config | None = None, *, listeners=(), progress: bool
     cfg = cfg or Config()
     options = {k: v for k, v in (("imu", imu), ("gnss", gnss)) if v is not None}
     source = open_log(path, system_id=cfg.link.system_id if cfg.link.system_id else 0, **options)
-    monitor = Monitor(cfg.monitor, record_tests=bool(listeners), date=source.date)
+    monitor = Monitor(cfg.monitor, record_tests=any(getattr(sink, "needs_tests", True) for sink in listeners),
+                      date=source.date)
     for sink in listeners:
         if getattr(sink, "clock", False) is None:      # a sink that logs in UTC where the log says it
             sink.clock = source

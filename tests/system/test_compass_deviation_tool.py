@@ -160,24 +160,3 @@ def test_an_older_copter_s_throttle_in_per_mille_and_a_plane_s_refused(tmp_path)
         else:
             assert u is None and why == "its throttle is not a multicopter's lift (the log says plane)", why
 
-
-def test_guard_replay_says_a_compass_that_reads_off_by_heading(tmp_path):
-    """`guard replay` fits the compass against the gyro over the whole log (guard.runtime.deviation):
-    a compass with a hard iron of 0.3 of the field is said, with how far it reads off; a clean one is
-    not; the report holds the fit either way."""
-    base = scn.load("clean")
-    for name, iron in (("iron", (0.3, -0.2)), ("clean", (0.0, 0.0))):
-        noise = dataclasses.replace(base.noise, mag_iron_x=iron[0], mag_iron_y=iron[1])
-        log = tmp_path / f"{name}.tlog"
-        run(dataclasses.replace(base, duration_s=120.0, noise=noise), 3, tlog=str(log))
-        got = subprocess.run([sys.executable, "-m", "guard", "replay", str(log), "--report", str(tmp_path / "r.json")],
-                             capture_output=True, text=True, timeout=300, cwd=tmp_path)
-        assert got.returncode == 0, got.stderr
-        fitted = json.loads((tmp_path / "r.json").read_text())["compass_deviation"]
-        line = [x for x in got.stdout.splitlines() if "the compass reads up to" in x]
-        if name == "iron":
-            truth = np.degrees(np.arcsin(np.hypot(*iron)))
-            assert fitted["shown"] and abs(fitted["max_deviation_deg"] - truth) < 2.0, fitted
-            assert len(line) == 1 and f"up to {fitted['max_deviation_deg']:.0f} degrees off" in line[0], got.stdout
-        else:
-            assert fitted["shown"] and fitted["max_deviation_deg"] < 2.0 and not line, (fitted, got.stdout)

@@ -1,0 +1,80 @@
+"""`guard replay` fits the compass against the gyro (guard.runtime.deviation) and says a compass that
+reads off by heading: its calibration or its place, where the readings before its first alarm show
+it; where they turned too little, both that and what else fits alike, a field that came in flight, with
+when the magnetometer's first alarm came. An attack on the compass is never put down to calibration."""
+
+import dataclasses
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from guard.runtime.deviation import SAY_DEG, said
+from guard_sim import scenario as scn
+from guard_sim.run import run
+from guard_sim.scenario import Attack
+
+DURATION_S = 300.0
+
+
+def replayed(tmp_path, name: str, **noise) -> tuple[dict, list[str]]:
+    """A clean loop (seed 3) with the compass's noise changed as asked, or with an attack on it; the
+    report's compass fit and the summary's compass lines."""
+    base = scn.load("clean")
+    attacks = noise.pop("attacks", ())
+    sc = dataclasses.replace(base, duration_s=DURATION_S, noise=dataclasses.replace(base.noise, **noise),
+                             attacks=attacks)
+    log = tmp_path / f"{name}.tlog"
+    run(sc, 3, tlog=str(log))
+    got = subprocess.run([sys.executable, "-m", "guard", "replay", str(log), "--report", str(tmp_path / f"{name}.json")],
+                         capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert got.returncode == 0, got.stderr
+    report = json.loads((tmp_path / f"{name}.json").read_text())
+    return report, [x for x in got.stdout.splitlines() if "the compass read" in x]
+
+
+def test_a_compass_with_an_iron_from_the_start_is_said_and_a_clean_one_is_not(tmp_path):
+    """An iron of 0.18 of the field (up to 10 degrees by heading) from the start: its first turn alarms
+    before it has turned enough to show the iron, so the line says the iron over the whole log and
+    what else would fit alike, with the first alarm's time. A clean compass: nothing said."""
+    report, lines = replayed(tmp_path, "iron", mag_iron_x=0.15, mag_iron_y=-0.1)
+    fitted = report["compass_deviation"]
+    truth = np.degrees(np.arcsin(np.hypot(0.15, -0.1)))
+    assert fitted["shown"] and abs(fitted["max_deviation_deg"] - truth) < 2.0, fitted
+    first = min(a["time_usec"] for a in report["alarms"] if a["sensor"] == "mag") / 1e6
+    assert fitted["before_first_alarm"]["shown"] is False, fitted
+    assert len(lines) == 1 and "over the whole log" in lines[0] and "a field that came in flight" in lines[0], lines
+    assert f"first alarm came at {first:.1f} s" in lines[0], lines
+    report, lines = replayed(tmp_path, "clean")
+    assert report["compass_deviation"]["max_deviation_deg"] < 2.0 and not lines, (report["compass_deviation"], lines)
+
+
+@pytest.mark.parametrize("size, onset", [(0.08, 60.0), (0.05, 120.0)])
+def test_an_attack_on_the_compass_is_not_put_down_to_its_calibration(tmp_path, size, onset):
+    """A field added to the compass in flight fits as an iron over the whole log; the line, where
+    there is one, never blames the calibration alone: it says a field that came in flight fits alike,
+    and that the first alarm came when the attack began."""
+    report, lines = replayed(tmp_path, "attack", attacks=(Attack("step", "mag", "x", size, onset),))
+    mags = [a["time_usec"] / 1e6 for a in report["alarms"] if a["sensor"] == "mag"]
+    assert mags and onset <= mags[0] <= onset + 3.0, mags          # caught as it began
+    assert all("before its first alarm" not in x for x in lines), lines
+    for x in lines:
+        assert "a field that came in flight" in x and f"first alarm came at {mags[0]:.1f} s" in x, x
+    if size >= 0.08:            # a field this large fits as an iron over the whole log, and the line says both
+        assert len(lines) == 1, report["compass_deviation"]
+
+
+def test_a_fit_within_its_own_error_or_that_explains_little_is_not_said():
+    """The line needs a deviation of SAY_DEG beyond twice the fit's standard error, and a fit that takes
+    the compass's scatter under EXPLAINS of what it is without."""
+    d = np.sin(np.radians(8.0))
+    good = {"shown": True, "dx": d, "dy": 0.0, "sigma": 0.01, "scatter_deg": 1.0, "scatter_without_deg": 5.0,
+            "covered_deg": 300.0, "max_deviation_deg": 8.0}
+    assert said(good) is not None and "over the whole log" in said(good)
+    assert said({**good, "sigma": 0.03}) is None                                    # 8 degrees, within 2 sigma of 5
+    assert said({**good, "scatter_deg": 4.0}) is None                               # explains too little
+    assert said({**good, "max_deviation_deg": SAY_DEG - 0.1}) is None
+    assert said({"shown": False, "why": "its headings cover 90 degrees"}) is None
+    assert "before its first alarm" in said({"shown": False}, good, 30.0)
