@@ -26,7 +26,6 @@ shown where m's standard error times that spread is under MAX_SIGMA). Where a co
 calibration would take out much of the compass's error in flight, the two scatters differ by much.
 """
 
-
 from __future__ import annotations
 
 import math
