@@ -78,3 +78,23 @@ def test_a_fit_within_its_own_error_or_that_explains_little_is_not_said():
     assert said({**good, "max_deviation_deg": SAY_DEG - 0.1}) is None
     assert said({"shown": False, "why": "its headings cover 90 degrees"}) is None
     assert "before its first alarm" in said({"shown": False}, good, 30.0)
+
+
+def test_a_long_log_full_of_gaps_is_fitted_on_its_longest_stretches_and_thinned():
+    """An hour of compass readings cut by a gap every 11 s (360 stretches): the fit takes the
+    MAX_STRETCHES longest and at most MAX_ROWS readings, in time order, so that its matrix stays small."""
+    from guard.runtime import deviation as dev
+    h = dev.Headings()
+    rng = np.random.default_rng(1)
+    for k in range(360):
+        span = 10.1 + rng.uniform(0.0, 0.8)
+        t = 11.0 * k + np.arange(0.0, span, dev.ROW_S)
+        h.stretches.append([(x, 0.1 * (x - t[0]), 0.0) for x in t])
+    t_rel, gamma, chi_m, stretch, t_abs = h.arrays()
+    assert stretch.max() + 1 == dev.MAX_STRETCHES and len(t_rel) <= dev.MAX_ROWS
+    assert np.all(np.diff(t_abs) > 0), "in time order"
+    spans = sorted((r[-1][0] - r[0][0] for r in h.stretches), reverse=True)
+    kept = [t_abs[stretch == j] for j in range(dev.MAX_STRETCHES)]
+    assert min(k[-1] - k[0] for k in kept) >= spans[dev.MAX_STRETCHES - 1] - 2 * dev.ROW_S
+    before = h.arrays(until_s=11.0 * 100)
+    assert before[4].max() < 1100.0 and before[3].max() + 1 == dev.MAX_STRETCHES
