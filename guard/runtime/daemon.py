@@ -23,6 +23,7 @@ from guard.errors import ConfigError, SourceError
 from guard.model.samples import GnssFix, ImuSample
 from guard.sources.link import MavlinkLink
 from guard.sources.live import check_url, open_link
+from guard.runtime.deviation import LiveCheck
 from guard.runtime.pump import Pump
 from guard.runtime.sdnotify import Notifier
 from guard.sinks.mcap import UNIX_2001_US, McapLog
@@ -150,6 +151,7 @@ class Daemon:
         self.status = StatusText(Fanout([self.link, self.gcs]), link_cfg, self.out, self._core_notice)
         self._output_only = [k for k in (self.link, self.gcs) if k is not None and k is not self.source]
         self.pump.sinks.append(self.status)
+        self.pump.sinks.append(LiveCheck(self._operator))   # a compass that reads off by heading: said once
         self.out(f"guard: listening on {self.connect}" + (f", logging to {self.mcap_path}" if self.log else ""))
         self.started = True
         self.notifier.ready(f"listening on {self.connect}")

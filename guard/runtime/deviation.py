@@ -27,6 +27,13 @@ without a magnetometer or an IMU fast enough to integrate.
 
 `Headings` listens to a replay; `iron_of` fits what it heard. tools/compass_deviation.py runs it over
 folders of logs (and fits the motors' field beside it).
+
+`LiveCheck` is the same for `guard run`: it keeps fewer readings (one per LIVE_ROW_S, the latest
+LIVE_ROWS of them), fits them every CHECK_S of the samples' time and at the magnetometer's first
+alarm, and says its line once (a WARNING on the link and in the log), the first time a fit explains
+the compass; once the turns show a compass that reads true it stops and holds nothing. An operator
+hears in the first minutes of turning that the compass needs calibrating, rather than reading it off
+the magnetometer's alarms.
 """
 
 from __future__ import annotations
@@ -38,7 +45,9 @@ import numpy as np
 
 from guard.core.aiding.imu import level
 from guard.core.aiding.tilt import Tilt
+from guard.model.events import Alarm
 from guard.model.samples import Attitude, ImuSample
+from guard.model.sensors import Sensor
 
 GAP_S = 0.5             # a stretch ends at a gap in the IMU this long (or a clock that goes back)
 MIN_STRETCH_S = 10.0    # shorter stretches are left out
@@ -61,6 +70,10 @@ SAY_DEG = 5.0           # a deviation this large guard replay says, where its fi
                         # scatter under EXPLAINS of the scatter without it): about three times the
                         # magnetometer's default floor (filter.heading_sigma_rad, 1.7 degrees)
 EXPLAINS = 0.7
+CHECK_S = 60.0          # guard run fits what it heard this often (the samples' time)
+LIVE_ROW_S = 0.2        # ... from one compass reading per this long
+LIVE_ROWS = 6000        # ... the latest this many (20 minutes of them)
+LIVE_STRETCHES = 10     # ... in at most this many stretches (a lossy link's gaps cut many short ones)
 
 
 class Headings:
@@ -69,7 +82,8 @@ class Headings:
 
     needs_tests = False
 
-    def __init__(self):
+    def __init__(self, row_s: float = ROW_S, max_stretches: int = MAX_STRETCHES):
+        self.row_s, self.max_stretches = row_s, max_stretches
         self.tilt = Tilt()
         self.stretches: list[list[tuple[float, float, float]]] = []   # (t s, Gamma, chi_m)
         self._t: int | None = None
@@ -94,7 +108,7 @@ class Headings:
                 self.intervals.append(sample.t_us - self._t)
         self._t = sample.t_us
         rows = self.stretches[-1]
-        if mag is not None and (not rows or sample.t_us / 1e6 - rows[-1][0] >= ROW_S):
+        if mag is not None and (not rows or sample.t_us / 1e6 - rows[-1][0] >= self.row_s):
             rows.append((sample.t_us / 1e6, self._gamma, math.atan2(-mag[1], mag[0])))
 
     def on_events(self, events) -> None:
@@ -103,7 +117,7 @@ class Headings:
     def arrays(self, until_s: float | None = None) -> tuple[np.ndarray, ...] | None:
         """(t from its stretch's start, Gamma, chi_m, stretch number) of the stretches long enough, and
         each reading's time on the samples' clock (s); only the readings before `until_s` (s, on that
-        clock) where given. At most MAX_STRETCHES stretches, the longest, and MAX_ROWS readings, every
+        clock) where given. At most `max_stretches` stretches, the longest, and MAX_ROWS readings, every
         k-th where there are more (a long log with many gaps would otherwise make the fit's matrix,
         readings by twice the stretches, too large)."""
         rows = (self.stretches if until_s is None else
@@ -111,8 +125,8 @@ class Headings:
         kept = [np.array(r) for r in rows if len(r) > 20 and r[-1][0] - r[0][0] >= MIN_STRETCH_S]
         if not kept:
             return None
-        if len(kept) > MAX_STRETCHES:
-            longest = sorted(range(len(kept)), key=lambda j: kept[j][-1, 0] - kept[j][0, 0])[-MAX_STRETCHES:]
+        if len(kept) > self.max_stretches:
+            longest = sorted(range(len(kept)), key=lambda j: kept[j][-1, 0] - kept[j][0, 0])[-self.max_stretches:]
             kept = [kept[j] for j in sorted(longest)]
         every = -(-sum(len(a) for a in kept) // MAX_ROWS)
         if every > 1:
@@ -239,13 +253,19 @@ def explains(iron: dict) -> bool:
             and iron["scatter_deg"] <= EXPLAINS * iron["scatter_without_deg"])
 
 
+def chosen(whole: dict, before: dict | None) -> dict | None:
+    """The fit a line is said of: the one before the magnetometer's first alarm where it explains the
+    compass, else the whole one where it does, else None."""
+    return before if before is not None and explains(before) else whole if explains(whole) else None
+
+
 def said(whole: dict, before: dict | None = None, first_alarm_s: float | None = None) -> str | None:
     """guard replay's line on the compass's iron: `whole` fitted over the whole log, `before` over the
     readings before the magnetometer's first alarm (at `first_alarm_s`, the log's time), where it
     had one. A field that came in flight (an attack on the compass, a part come loose) fits as an iron
     too: the line blames the compass's calibration only where the readings before its first alarm show
     the iron; where they turned too little to show it, it says both and when the first alarm came."""
-    fit_ = before if before is not None and explains(before) else whole if explains(whole) else None
+    fit_ = chosen(whole, before)
     if fit_ is None:
         return None
     size = (f"up to {fit_['max_deviation_deg']:.0f} degrees off depending on the heading (a field fixed to the body, "
@@ -273,3 +293,80 @@ def compass_fits(h: Headings, report: dict) -> tuple[dict, dict | None, float | 
     before = iron_of(h, first)
     before.pop("arrays", None)
     return whole, before, first / 1e6
+
+
+class LiveCheck(Headings):
+    """guard run's compass check (a sink): `say(line)` once, where a fit explains the compass.
+
+    At the magnetometer's first alarm it fits the readings before it; every CHECK_S it fits all it
+    holds. The line is `said`'s, shorter for a ground station (a STATUSTEXT holds 50 bytes): the
+    calibration is blamed alone only where the readings before the first alarm show the iron. Once it
+    has said its line, or the turns show a compass that reads true, it stops listening."""
+
+    def __init__(self, say):
+        super().__init__(LIVE_ROW_S, LIVE_STRETCHES)
+        self.say = say
+        self.done = False
+        self.before: dict | None = None             # the fit before the magnetometer's first alarm
+        self.first_alarm: int | None = None         # ... and its GNSS sample k
+        self._next_us: int | None = None
+
+    def on_sample(self, sample) -> None:
+        if self.done:
+            return
+        super().on_sample(sample)
+        if not isinstance(sample, ImuSample):
+            return
+        t = sample.t_us
+        if self._next_us is None or t < self._next_us - CHECK_S * 1e6:     # the first, or a clock gone back
+            self._next_us = t + CHECK_S * 1e6
+        elif t >= self._next_us:
+            self._next_us = t + CHECK_S * 1e6
+            self.check()
+
+    def on_events(self, events) -> None:
+        if self.done or self.first_alarm is not None:
+            return
+        alarm = next((e for e in events if isinstance(e, Alarm) and e.sensor == Sensor.MAG), None)
+        if alarm is None:
+            return
+        self.first_alarm = alarm.gnss_index
+        self.before = iron_of(self, alarm.t_us)
+        self.before.pop("arrays", None)
+        if explains(self.before):
+            self._say(self.before)
+
+    def check(self) -> None:
+        """Fit what it holds (the latest LIVE_ROWS readings); say the line, or stop where the turns show
+        a compass that reads true."""
+        self._trim()
+        whole = iron_of(self)
+        whole.pop("arrays", None)
+        if chosen(whole, self.before) is not None:
+            self._say(whole)
+        elif whole.get("shown"):           # turned enough to show an iron, and none explains the compass
+            self._stop()
+
+    def _say(self, fit_: dict) -> None:
+        line = (f"compass reads up to {fit_['max_deviation_deg']:.0f} deg off by heading (fitted on "
+                f"{fit_['covered_deg']:.0f} deg of turns): calibrate it, or move it from the wiring")
+        if fit_ is not self.before and self.first_alarm is not None:
+            line += (f"; or a field came in flight (an attack fits alike): its first alarm, k={self.first_alarm}, "
+                     "came before the turns could tell")
+        self.say(line)
+        self._stop()
+
+    def _stop(self) -> None:
+        self.done = True
+        self.stretches, self.intervals = [], []
+
+    def _trim(self) -> None:
+        extra = sum(len(r) for r in self.stretches) - LIVE_ROWS
+        while extra > 0 and self.stretches:
+            first = self.stretches[0]
+            if len(first) <= extra and len(self.stretches) > 1:
+                extra -= len(first)
+                self.stretches.pop(0)
+            else:
+                del first[:extra]
+                extra = 0

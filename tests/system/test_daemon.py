@@ -34,6 +34,7 @@ from pymavlink import mavutil                          # noqa: E402
 
 from guard.config import parse                         # noqa: E402
 from guard.runtime.daemon import Daemon                        # noqa: E402
+from guard.runtime.deviation import LiveCheck                  # noqa: E402
 from guard_sim import scenario                               # noqa: E402
 from guard_sim.mavout import Encoder                         # noqa: E402
 from guard_sim.run import Simulation                         # noqa: E402
@@ -63,12 +64,12 @@ def wait_for(condition, timeout_s: float = 10.0, what: str = "condition") -> Non
         time.sleep(0.01)
 
 
-def scenario_messages(name: str, seed: int = 1, until_s: float | None = None, edit=None):
+def scenario_messages(name, seed: int = 1, until_s: float | None = None, edit=None):
     """The simulator's messages as (t_us, msg), unpacked so that a test can change them first.
 
-    `edit(t_us, msg)` may change msg in place, or return False to drop it.
+    `name`: a scenario's, or a Scenario. `edit(t_us, msg)` may change msg in place, or return False to drop it.
     """
-    sim = Simulation(scenario.load(name), seed)
+    sim = Simulation(scenario.load(name) if isinstance(name, str) else name, seed)
     items = []
     for t_us, msgs in sim.ticks():
         if until_s is not None and t_us > until_s * 1e6:
@@ -816,3 +817,38 @@ def test_a_long_warning_reaches_the_ground_station_whole():
     assert len(chunks[0].text) == 50 and chunks[0].severity == chunks[1].severity == WARNING
     assert "".join(m.text for m in chunks) == "GUARD GNSS without a fix: monitoring starts at the first fix"
     assert all(len(t) <= 50 for t in texts(got))
+
+
+@pytest.mark.parametrize("iron", [(0.15, -0.1), (0.0, 0.0)])
+def test_a_compass_that_reads_off_by_heading_is_said_once_on_the_link(iron, caplog):
+    """A compass with a hard iron of 0.18 of the field (up to 10 degrees by heading) from the start, on
+    the simulator's loop: the magnetometer alarms at its first turn, and once the turns show the iron
+    (a lap, about two minutes) the ground station is told once, at WARNING, that the compass reads that
+    far off by heading and that a field come in flight fits alike, with that first alarm's k. A clean
+    compass: nothing said of it."""
+    base = scenario.load("clean")
+    sc = dataclasses.replace(base, noise=dataclasses.replace(base.noise, mag_iron_x=iron[0], mag_iron_y=iron[1]))
+    enc, items = scenario_messages(sc, seed=3, until_s=200)
+    with caplog.at_level(logging.INFO), in_process() as g:
+        peer = g.connect()
+        feed(peer, frames(enc, items), g.d)
+        got = drain(peer)
+    chunks: dict[int, list] = {}
+    for m in got:
+        if m.get_type() == "STATUSTEXT" and m.id:
+            chunks.setdefault(m.id, []).append(m)
+    said = ["".join(m.text for m in sorted(c, key=lambda m: m.chunk_seq)) for c in chunks.values()]
+    said = [(t, c[0].severity) for t, c in zip(said, chunks.values()) if "compass reads" in t]
+    logged = [r.getMessage() for r in caplog.records if "compass reads" in r.getMessage()]
+    if iron == (0.0, 0.0):
+        assert not said and not logged, (said, logged)
+        check = next(s for s in g.d.pump.sinks if isinstance(s, LiveCheck))
+        assert check.done and not check.stretches, "the turns showed a true compass: the check let go of its readings"
+        return
+    assert len(said) == 1 and said[0][1] == WARNING and len(logged) == 1, (said, logged)
+    assert said[0][0] == "GUARD " + logged[0]
+    size = float(re.search(r"up to (\d+) deg off by heading", logged[0]).group(1))
+    assert abs(size - math.degrees(math.asin(math.hypot(*iron)))) <= 2.0, logged
+    first = re.search(r"first alarm, k=(\d+)", logged[0])
+    mags = [int(re.search(r"k=(\d+)", t).group(1)) for t in texts(got, CRITICAL) if "mag" in t]
+    assert first and mags and int(first.group(1)) == mags[0], (logged, texts(got, CRITICAL))

@@ -11,7 +11,8 @@ import sys
 import numpy as np
 import pytest
 
-from guard.runtime.deviation import SAY_DEG, said
+from guard.runtime import deviation
+from guard.runtime.deviation import SAY_DEG, LiveCheck, said
 from guard_sim import scenario as scn
 from guard_sim.run import run
 from guard_sim.scenario import Attack
@@ -98,3 +99,17 @@ def test_a_long_log_full_of_gaps_is_fitted_on_its_longest_stretches_and_thinned(
     assert min(k[-1] - k[0] for k in kept) >= spans[dev.MAX_STRETCHES - 1] - 2 * dev.ROW_S
     before = h.arrays(until_s=11.0 * 100)
     assert before[4].max() < 1100.0 and before[3].max() + 1 == dev.MAX_STRETCHES
+
+
+def test_the_live_check_holds_the_latest_readings_only(monkeypatch):
+    """guard run's check keeps the latest LIVE_ROWS readings: the oldest stretches go first, whole, then
+    the oldest readings of the one left."""
+    monkeypatch.setattr(deviation, "LIVE_ROWS", 120)
+    check = LiveCheck(lambda line: None)
+    check.stretches = [[(float(t), 0.0, 0.0) for t in range(100)], [(float(t), 0.0, 0.0) for t in range(200, 250)],
+                       [(float(t), 0.0, 0.0) for t in range(300, 380)]]
+    check._trim()
+    assert [len(r) for r in check.stretches] == [40, 80] and check.stretches[0][0][0] == 210.0
+    check.stretches = [[(float(t), 0.0, 0.0) for t in range(300)]]
+    check._trim()
+    assert len(check.stretches[0]) == 120 and check.stretches[0][0][0] == 180.0
