@@ -192,9 +192,10 @@ def autopilot_saw(path: str, report: dict) -> list[int] | str:
 
 def one(job: tuple[str, str | None, tuple[str, ...], tuple[str, ...], bool]) -> dict:
     path, config, sets, attacks, ask = job
-    span, headings = Span(), Headings()
+    span = Span()
     try:
         cfg = config_of(config, sets)
+        headings = Headings(min_imu_hz=cfg.monitor.min_imu_hz)
         r = replay(path, cfg, listeners=[span, headings])
     except GuardError as e:
         return {"log": path, "error": str(e)}

@@ -151,7 +151,8 @@ class Daemon:
         self.status = StatusText(Fanout([self.link, self.gcs]), link_cfg, self.out, self._core_notice)
         self._output_only = [k for k in (self.link, self.gcs) if k is not None and k is not self.source]
         self.pump.sinks.append(self.status)
-        self.pump.sinks.append(LiveCheck(self._operator))   # a compass that reads off by heading: said once
+        # a compass that reads off by heading: said once
+        self.pump.sinks.append(LiveCheck(self._operator, self.cfg.monitor.min_imu_hz))
         self.out(f"guard: listening on {self.connect}" + (f", logging to {self.mcap_path}" if self.log else ""))
         self.started = True
         self.notifier.ready(f"listening on {self.connect}")

@@ -62,7 +62,8 @@ MIN_FIELD = 0.2         # the field left once the iron is taken away: a fit that
 GYRO_SCALE = 0.01       # the gyro's scale error, 1 sigma (a calibrated MEMS gyro's): a prior, not a free
                         # parameter, as over half a circle a deviation looks like a scale error
 MIN_COVER_DEG = 180.0   # the headings read must cover this much of the circle for the iron to be shown
-MIN_IMU_HZ = 8.0        # a slower IMU (telemetry) is not integrated, as guard does not (monitor.min_imu_hz)
+MIN_IMU_HZ = 8.0        # a slower IMU (telemetry) is not integrated, as guard does not (monitor.min_imu_hz's
+                        # default; guard replay and guard run pass the configured one)
 MAX_STRETCHES = 30      # the longest stretches fitted, at most (each has its own start and gyro bias)
 MAX_ROWS = 40_000       # readings fitted, at most: over half an hour of them
 SAY_DEG = 5.0           # a deviation this large guard replay says, where its fit shows it beyond its own
@@ -82,8 +83,8 @@ class Headings:
 
     needs_tests = False
 
-    def __init__(self, row_s: float = ROW_S, max_stretches: int = MAX_STRETCHES):
-        self.row_s, self.max_stretches = row_s, max_stretches
+    def __init__(self, row_s: float = ROW_S, max_stretches: int = MAX_STRETCHES, min_imu_hz: float = MIN_IMU_HZ):
+        self.row_s, self.max_stretches, self.min_imu_hz = row_s, max_stretches, min_imu_hz
         self.tilt = Tilt()
         self.stretches: list[list[tuple[float, float, float]]] = []   # (t s, Gamma, chi_m)
         self._t: int | None = None
@@ -226,7 +227,7 @@ def iron_of(h: Headings, before_us: int | None = None) -> dict:
         why = (f"its IMU never twice within {GAP_S:g} s, too slow to integrate the gyro" if h.imu_samples
                else "no IMU samples to integrate the gyro")
         return {"shown": False, "error": why, **cut}
-    if hz < MIN_IMU_HZ:
+    if hz < h.min_imu_hz:
         return {"shown": False, "error": f"its IMU at {hz:.1f} Hz, too slow to integrate the gyro", **cut}
     a = h.arrays(None if before_us is None else before_us / 1e6)
     if a is None:
@@ -303,8 +304,8 @@ class LiveCheck(Headings):
     calibration is blamed alone only where the readings before the first alarm show the iron. Once it
     has said its line, or the turns show a compass that reads true, it stops listening."""
 
-    def __init__(self, say):
-        super().__init__(LIVE_ROW_S, LIVE_STRETCHES)
+    def __init__(self, say, min_imu_hz: float = MIN_IMU_HZ):
+        super().__init__(LIVE_ROW_S, LIVE_STRETCHES, min_imu_hz)
         self.say = say
         self.done = False
         self.before: dict | None = None             # the fit before the magnetometer's first alarm

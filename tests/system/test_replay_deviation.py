@@ -20,16 +20,18 @@ from guard_sim.scenario import Attack
 DURATION_S = 300.0
 
 
-def replayed(tmp_path, name: str, **noise) -> tuple[dict, list[str]]:
+def replayed(tmp_path, name: str, config: str = "", **noise) -> tuple[dict, list[str]]:
     """A clean loop (seed 3) with the compass's noise changed as asked, or with an attack on it; the
-    report's compass fit and the summary's compass lines."""
+    report's compass fit and the summary's compass lines. `config`: a config file's text."""
     base = scn.load("clean")
     attacks = noise.pop("attacks", ())
     sc = dataclasses.replace(base, duration_s=DURATION_S, noise=dataclasses.replace(base.noise, **noise),
                              attacks=attacks)
     log = tmp_path / f"{name}.tlog"
     run(sc, 3, tlog=str(log))
-    got = subprocess.run([sys.executable, "-m", "guard", "replay", str(log), "--report", str(tmp_path / f"{name}.json")],
+    (tmp_path / "guard.toml").write_text(config)
+    got = subprocess.run([sys.executable, "-m", "guard", "replay", str(log), "--report", str(tmp_path / f"{name}.json"),
+                          "--config", str(tmp_path / "guard.toml")],
                          capture_output=True, text=True, timeout=300, cwd=tmp_path)
     assert got.returncode == 0, got.stderr
     report = json.loads((tmp_path / f"{name}.json").read_text())
@@ -65,6 +67,14 @@ def test_an_attack_on_the_compass_is_not_put_down_to_its_calibration(tmp_path, s
         assert "a field that came in flight" in x and f"first alarm came at {mags[0]:.1f} s" in x, x
     if size >= 0.08:            # a field this large fits as an iron over the whole log, and the line says both
         assert len(lines) == 1, report["compass_deviation"]
+
+
+def test_an_imu_slower_than_the_configured_rate_is_not_integrated_for_the_fit_either(tmp_path):
+    """The fit integrates the gyro only where guard would (monitor.min_imu_hz): a 50 Hz IMU with the
+    bound raised past it is not fitted, and the report says why."""
+    report, lines = replayed(tmp_path, "slow", "[monitor]\nmin_imu_hz = 60.0\n", mag_iron_x=0.15, mag_iron_y=-0.1)
+    fitted = report["compass_deviation"]
+    assert not fitted["shown"] and "too slow to integrate the gyro" in fitted["error"] and not lines, fitted
 
 
 def test_a_fit_within_its_own_error_or_that_explains_little_is_not_said():
