@@ -53,7 +53,8 @@ GAP_S = 0.5             # a stretch ends at a gap in the IMU this long (or a clo
 MIN_STRETCH_S = 10.0    # shorter stretches are left out
 ROW_S = 0.05            # one compass reading kept per this long
 HUBER = 2.5             # residuals beyond this many robust sigmas weigh less
-ITERATIONS = 25
+ITERATIONS = 25         # at most; the fit stops where no parameter moves by CONVERGED
+CONVERGED = 1e-7        # rad (or rad/s, or a fraction of the field): far below any figure it gives
 MAX_STEP = 0.1          # Gauss-Newton moves the iron at most this far per iteration
 CORR_S = 2.0            # one independent reading per this long, in the standard error
 MAX_SIGMA = 0.05        # the iron is shown where its standard error is below this (3 degrees)
@@ -211,6 +212,8 @@ def fit(t, gamma, chi_m, stretch, iron: bool = True,
         k0 += step[:n_s]
         k1 += step[n_s:2 * n_s]
         s += step[2 * n_s]
+        if float(np.max(np.abs(step))) < CONVERGED:
+            break
     seconds = sum(float(np.ptp(t[stretch == j])) for j in range(n_s))
     per_second = len(t) / max(seconds, 1e-6)
     return d, sigma, np.linalg.pinv(N) * sigma ** 2 * max(1.0, per_second * CORR_S)
