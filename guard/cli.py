@@ -93,7 +93,8 @@ def _config(args) -> int:
         if path else set()
     overrides = []
     if args.connect:
-        cfg, _ = replace(cfg, link=replace(cfg.link, connect=args.connect)), overrides.append("link.connect (--connect)")
+        cfg, _ = (replace(cfg, link=replace(cfg.link, connect=args.connect)),
+                  overrides.append("link.connect (--connect)"))
     if args.mcap is not None:
         cfg, _ = replace(cfg, log=replace(cfg.log, mcap=args.mcap)), overrides.append("log.mcap (--mcap)")
     if args.system_id is not None:
@@ -250,7 +251,8 @@ def parser() -> argparse.ArgumentParser:
     r = command("replay", help="run a log through the detector offline (tlog, DataFlash .bin, ULog .ulg)")
     r.add_argument("file", help="a log: .tlog (MAVLink), .bin (ArduPilot DataFlash) or .ulg (PX4 ULog), "
                    "recognised by its content")
-    r.add_argument("--imu", type=int, metavar="N", help="the IMU instance to read, in a log with several (default: the primary)")
+    r.add_argument("--imu", type=int, metavar="N",
+                   help="the IMU instance to read, in a log with several (default: the primary)")
     r.add_argument("--gnss", type=int, metavar="N", help="the GNSS receiver to read, in a log with several")
     r.add_argument("--config", help="TOML config file")
     r.add_argument("--detector", choices=["cusum", "paper", "gate", "chi2"], help="override detector.name")
@@ -274,8 +276,8 @@ def parser() -> argparse.ArgumentParser:
     r.set_defaults(func=_tune)
 
     r = command("sim", help="the simulator: a vehicle speaking MAVLink (and DroneCAN)")
-    r.add_argument("--scenario", default="paper", help="a shipped scenario (paper, clean, step_east, ramp_north, gyro_bias, accel_bias, "
-                   "freeze, spoof, wandering_compass) or a scenario TOML file")
+    r.add_argument("--scenario", default="paper", help="a shipped scenario (paper, clean, step_east, ramp_north, "
+                   "gyro_bias, accel_bias, freeze, spoof, wandering_compass) or a scenario TOML file")
     r.add_argument("--seed", type=int, default=1, help="the simulator's random seed (noise, attack phases)")
     r.add_argument("--tlog", help="write a tlog (and NAME.truth.json beside it)")
     r.add_argument("--bin", help="write the run as an ArduPilot DataFlash log too (and its truth beside it)")

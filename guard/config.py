@@ -137,7 +137,8 @@ def _check(cfg: Config, where: str) -> None:
                             "must be \"auto\", \"ground\" or \"air\""),
         # values that would switch detection off, or flood the disk
         "monitor.max_gap_s": (cfg.monitor.max_gap_s < 1.0, "must be >= 1 s (below, every gap restarts the filter)"),
-        "monitor.readmit_sigma": (cfg.monitor.readmit_sigma < 1.0, "must be >= 1 (below, no sensor is ever re-admitted)"),
+        "monitor.readmit_sigma": (cfg.monitor.readmit_sigma < 1.0,
+                                  "must be >= 1 (below, no sensor is ever re-admitted)"),
         "monitor.max_coast_m": (cfg.monitor.max_coast_m < 1.0, "must be >= 1 m"),
         "monitor.max_coast_heading_deg": (not 1.0 <= cfg.monitor.max_coast_heading_deg <= 90.0,
                                           "must be within 1..90 deg"),

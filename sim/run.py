@@ -175,7 +175,8 @@ def run(scenario: Scenario, seed: int, *, tlog: str | None = None, out: str | No
 
     `tlog` writes a tlog, `bin` an ArduPilot DataFlash log, `ulg` a PX4 ULog (any of them, the same
     run), `out` sends live MAVLink, `can` publishes DroneCAN; live output (MAVLink or
-    CAN) is paced at `speedup` times real time unless `fast`; a tlog alone is written at once. `on_statustext(msg)` is called for every STATUSTEXT received on `out`.
+    CAN) is paced at `speedup` times real time unless `fast`; a tlog alone is written at once.
+    `on_statustext(msg)` is called for every STATUSTEXT received on `out`.
     `can` is an object with send_gnss/send_imu/send_mag (guard_sim.canbus.CanPublisher) or None.
     `autopilot` "px4" sends the tlog's and the live link's IMU as PX4 does, HIGHRES_IMU (mavout.Encoder).
     `stream_hz` > 0: the live link sends GPS_RAW_INT and the IMU at most that often until asked for more,

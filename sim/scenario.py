@@ -89,7 +89,8 @@ class Noise:
     gnss_pos_markov_tau_s: float = 60.0   # and correlation time
     gnss_vel_white_mps: float = 0.05
     gnss_h_acc_m: float = 0.8             # what the receiver reports as its accuracy: sqrt(0.3^2 + 0.7^2)
-    gnss_delay_s: float = 0.0             # the receiver's latency: a fix shows the vehicle this long before its time stamp
+    gnss_delay_s: float = 0.0             # the receiver's latency: a fix shows the vehicle this long before its
+                                          # time stamp
     gyro_white_radps: float = 0.003
     gyro_bias_radps: float = 0.002
     accel_white_mps2: float = 0.05

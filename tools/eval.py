@@ -86,7 +86,8 @@ def main(argv=None) -> int:
     p.add_argument("--summarise", metavar="DIR", help="summarise DIR/runs.csv of an earlier campaign again")
     p.add_argument("--resume", action="store_true",
                    help="keep the runs an interrupted campaign left in OUT/runs.partial.jsonl (same code only)")
-    p.add_argument("--figure", nargs=2, metavar=("CASE", "SEED"), help="simulate one run; keep its tlog, report, figure (the first of --detectors)")
+    p.add_argument("--figure", nargs=2, metavar=("CASE", "SEED"),
+                   help="simulate one run; keep its tlog, report, figure (the first of --detectors)")
     args = p.parse_args(argv)
     if args.config:
         try:                                         # guard's own reading and checks: the file and key named
@@ -139,8 +140,9 @@ def main(argv=None) -> int:
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     plots(summary, rows, out)
     cols = ["case", "detector", "detection_rate", "median_delay_samples", "p95_delay_samples", "median_delay_s",
-            "p95_delay_s", "false_alarms_per_h", "isolation_rate", "ambiguous_rate", "p95_error_at_alarm_m", "worst_error_30s_after_m",
-            "lorden_bound_s", "delay_over_lorden", "information_bound_s", "delay_over_bound", "max_peak_ratio", "extrapolated_fa_interval_h", "named"]
+            "p95_delay_s", "false_alarms_per_h", "isolation_rate", "ambiguous_rate", "p95_error_at_alarm_m",
+            "worst_error_30s_after_m", "lorden_bound_s", "delay_over_lorden", "information_bound_s", "delay_over_bound",
+            "max_peak_ratio", "extrapolated_fa_interval_h", "named"]
     print(" | ".join(cols))
     for s in summary:
         print(" | ".join("" if s.get(c) is None else (f"{s[c]:.2f}" if isinstance(s[c], float) else

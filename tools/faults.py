@@ -1,7 +1,8 @@
 """Fault campaigns against the daemon: a silent link, an autopilot reboot, SIGKILL, a full disk, a long run.
 
     python tools/faults.py silence              # the link silent 2, 8 and 20 s, before the attack and during it
-    python tools/faults.py reboot               # the autopilot reboots before the attack, after its alarm; a lone wild stamp
+    python tools/faults.py reboot               # the autopilot reboots before the attack, after its alarm; a lone
+                                                # wild stamp
     python tools/faults.py kill --kills 10      # `guard run --mcap` killed at random moments, then mcap-recover
     python tools/faults.py disk                 # the MCAP log directory on a 256 kB tmpfs that fills (needs root)
     python tools/faults.py memory --minutes 60 --speedup 4   # resident memory over an hour of driving
@@ -199,13 +200,15 @@ def silence(args) -> int:
                   and (c["back"] or not c["warned"]))
             bad += not ok
             print(f"{gap:4.0f}s {at_s:4.0f}s  {str(c['warned']):6s}  {str(c['back']):5s} {len(c['false_alarms']):5d}  "
-                  f"{c['delay']!s:>5}  {str(c['standing']):21s}  {len(c['cleared_gnss']):13d}  {c['reinitialised']:7d}  "
+                  f"{c['delay']!s:>5}  {str(c['standing']):21s}  {len(c['cleared_gnss']):13d}  "
+                  f"{c['reinitialised']:7d}  "
                   f"{c['alive']}" + ("" if ok else "   FAILED"))
     print("silence before the attack (from 10 s) and during it (from 50 s, after the alarm); delay: GNSS samples "
           "after the attack's first one")
     # the limit: the attack starts while the link is down longer than monitor.max_gap_s (10 s)
     c = silence_case(20.0, 30.0, args.seed)
-    print(f"the limit: silent from 30 to 50 s, the attack starting at 40 s meanwhile: re-initialised {c['reinitialised']}, "
+    print("the limit: silent from 30 to 50 s, the attack starting at 40 s meanwhile: "
+          f"re-initialised {c['reinitialised']}, "
           f"alarm {'after ' + str(c['delay']) + ' samples' if c['delay'] is not None else 'never'}, false alarms "
           f"{len(c['false_alarms'])}, alive {c['alive']} (a new filter starts on the first fix after a long gap: "
           "one already attacked is its reference)")
@@ -395,8 +398,8 @@ def disk(args) -> int:
             and not [a for a in r["alarms"] if a.t_us < ATTACK_US]
         print(f"{args.size_kb} kB disk, {used // 1024} kB written: the alarm {delay_samples(alarm)} samples after the "
               f"attack, false alarms {len([a for a in r['alarms'] if a.t_us < ATTACK_US])}, alive {r['alive']}; "
-              f"'MCAP log lost' said {len(lost)} time(s); {readable} file(s) recovered and read back, {fixes} GNSS fixes "
-              f"of 801 in them"
+              f"'MCAP log lost' said {len(lost)} time(s); {readable} file(s) recovered and read back, {fixes} "
+              f"GNSS fixes of 801 in them"
               + ("" if ok else "   FAILED"))
         return 0 if ok else 1
     finally:

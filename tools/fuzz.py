@@ -11,10 +11,11 @@ and pymavlink's parse_buffer, then to_sample), `tlog`, `dataflash`, `ulog` (file
 guard.sources.open_log), `can` (frames through CanSource's decoding), `core` (samples through
 Monitor.step); `all` splits --cases evenly between them. A case fails when anything but the target's
 documented errors (guard's SourceError for a log) comes out, or an output breaks its promise
-(tools/fuzzing/contract.py: a sample not finite or out of range, an estimate not finite). Each failing input is written to --out as
-TARGET-SHA.input, its traceback beside it as TARGET-SHA.txt; a hang or a crash of the interpreter is
-left there by libFuzzer (TARGET-timeout-..., TARGET-crash-...). The last line sums up: cases, failing
-cases (and distinct failures, by exception and place), time.
+(tools/fuzzing/contract.py: a sample not finite or out of range, an estimate not finite). Each
+failing input is written to --out as TARGET-SHA.input, its traceback beside it as TARGET-SHA.txt; a
+hang or a crash of the interpreter is left there by libFuzzer (TARGET-timeout-...,
+TARGET-crash-...). The last line sums up: cases, failing cases (and distinct failures, by exception
+and place), time.
 
 Engines: `atheris` (coverage-guided, libFuzzer; not a dependency of guard: `pip install atheris`,
 a binary wheel for CPython 3.11 on x86-64 Linux) grows a corpus in --work from the seeds in --corpus;

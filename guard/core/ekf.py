@@ -50,9 +50,9 @@ slip lasts the whole turn, so with k_s held at 0 the filter would hold the sidew
 zero against the truth, turn its heading towards the course and let its speed drift (on a simulated
 car with k_s = 0.011 at 6 m/s: half the slip held, 1.7 degrees and 0.2 m/s off by a turn's end, and
 the GNSS velocity at 0.996 of its threshold as the turn ends). Learnt, k_s comes within 0.002 of the
-vehicle's by the end of a 10-minute drive. With it, the GNSS course is a third heading witness, the IMU alone keeps the position
-through a GNSS outage (its error grows with the speed error only), and a spoof that moves the GNSS
-track sideways from the heading shows at once.
+vehicle's by the end of a 10-minute drive. With it, the GNSS course is a third heading witness, the
+IMU alone keeps the position through a GNSS outage (its error grows with the speed error only), and
+a spoof that moves the GNSS track sideways from the heading shows at once.
 
 Why numpy and not filterpy's ExtendedKalmanFilter: filterpy's update() computes the innovation and
 fuses it in one call, and guard must see the innovation r = y - ŷ and S = H P Hᵀ + R *before*
@@ -113,7 +113,8 @@ class FilterConfig:
     lateral_sigma_mps: float = 0.1    # ground vehicles: sideways body velocity (skid), the v_y = 0 pseudo-measurement
     lateral_slip_rad_per_mps2: float = 0.02   # ... and in a turn a tyre's slip angle, per m/s^2 of lateral
                                       # acceleration: adds (this * |yaw rate * v| * v)^2 to its R (a car: 0.005 to 0.01)
-    q_pos_m: float = 0.1              # position random walk, m/sqrt(s): covers correlated GNSS error (per unit of HDOP, guard.core.aiding.gnss)
+    q_pos_m: float = 0.1              # position random walk, m/sqrt(s): covers correlated GNSS error (per unit of
+                                      # HDOP, guard.core.aiding.gnss)
     q_heading_rad: float = 0.005
     q_vel_mps: float = 0.05
     q_yaw_rate_radps: float = 0.5     # yaw acceleration

@@ -39,7 +39,8 @@ def verdict(truth: dict, received: list[tuple[int, str]]) -> str:
     caught = [k for k in alarms if k >= first]
     if not caught:
         return f"verdict: {what} at GNSS sample {k0} MISSED" + (f", {len(false)} false alarm(s)" if false else "")
-    return (f"verdict: {what} at GNSS sample {k0} caught at sample {caught[0]} ({max(0, caught[0] - k0)} samples late), "
+    return (f"verdict: {what} at GNSS sample {k0} caught at sample {caught[0]} "
+            f"({max(0, caught[0] - k0)} samples late), "
             + (f"{len(false)} FALSE ALARM(S)" if false else "no false alarm"))
 
 

@@ -53,7 +53,8 @@ def exclusions(report: dict, t_end_us: int) -> list[tuple[int, int, str]]:
     re-admission (or the end of the log)."""
     out = []
     for a in report["alarms"]:
-        back = [c["time_usec"] for c in report["cleared"] if c["sensor"] == a["sensor"] and c["time_usec"] >= a["time_usec"]]
+        back = [c["time_usec"] for c in report["cleared"]
+                if c["sensor"] == a["sensor"] and c["time_usec"] >= a["time_usec"]]
         end = min(back, default=t_end_us)
         if not any(s == a["sensor"] and s0 <= a["time_usec"] <= e for s0, e, s in out):
             out.append((a["time_usec"], end, a["sensor"]))
@@ -105,7 +106,8 @@ def plot(trace: Trace, report: dict, out: str, truth: dict | None = None) -> Non
     if len(series):
         axes[2].plot((series[:, 0] - t0) / 1e6, series[:, 1], lw=0.8, label=f"{report['detector']} statistic")
         axes[2].plot((series[:, 0] - t0) / 1e6, series[:, 2], lw=0.8, ls="--", color="k",
-                     label="threshold of the test nearest it (CUSUM bank: it steps when the\nsmall-shift and large-shift members take turns)")
+                     label="threshold of the test nearest it (CUSUM bank: it steps when the\n"
+                     "small-shift and large-shift members take turns)")
     alarms = report["alarms"]
     labels = set()
 

@@ -97,9 +97,9 @@ def motion_rate(fixes) -> tuple[float, float, int] | None:
 
 
 def epoch_rate(times) -> tuple[float, float, int, float] | None:
-    """(rate, standard error, intervals, the standard interval in ms) of the log's clock against its receiver's epochs, from the
-    times (us) of its fixes; None: the intervals are not a receiver's (too few, too scattered, or
-    no standard rate near them)."""
+    """(rate, standard error, intervals, the standard interval in ms) of the log's clock against its
+    receiver's epochs, from the times (us) of its fixes; None: the intervals are not a receiver's
+    (too few, too scattered, or no standard rate near them)."""
     t = sorted(set(times))
     d = [(b - a) / 1e3 for a, b in zip(t, t[1:]) if 0 < b - a <= GAP_S * 1e6]
     if len(d) < MIN_INTERVALS:
@@ -169,7 +169,8 @@ def gnss_time_clock(boot: list[float], gps: list[float], notes: list[str]) -> tu
     rms = math.sqrt(statistics.fmean([(b - my - rate * (a - mx)) ** 2 for a, b in zip(x, y)]))
     if abs(rate - 1.0) <= CLOCK_TOLERANCE:
         return None
-    said = f"the autopilot's clock ran {abs(rate - 1.0) * 100:.1f} % {'slow' if rate > 1.0 else 'fast'} against the GNSS receiver's"
+    said = (f"the autopilot's clock ran {abs(rate - 1.0) * 100:.1f} % {'slow' if rate > 1.0 else 'fast'} "
+            "against the GNSS receiver's")
     if rms > CLOCK_JITTER_S or abs(rate - 1.0) > CLOCK_LIMIT:
         notes.append(f"{said}, not in a straight line (rms {rms:.2f} s) or beyond {CLOCK_LIMIT:.0%}: "
                      "time stamps left as logged")

@@ -5,8 +5,9 @@ vel_acc mm/s; fix_type < 3 is no 3D fix. RAW_IMU (ArduPilot): acceleration mG (s
 gyro mrad/s, magnetometer mGauss, body FRD. HIGHRES_IMU (PX4's, 50 Hz in its onboard mode): the same in
 SI floats (m/s^2, rad/s, gauss), with EKF2's estimated sensor biases already taken out; its
 fields_updated bits say which groups are new (a magnetometer without its bits is the last reading
-again, and is not used); a non-finite value, or one beyond what RAW_IMU's int16 carries, is skipped. ATTITUDE: roll, pitch rad; time_boot_ms; a roll outside
-[-pi, pi] or a pitch beyond 1.5 rad (or either not finite) is skipped.
+again, and is not used); a non-finite value, or one beyond what RAW_IMU's int16 carries, is skipped.
+ATTITUDE: roll, pitch rad; time_boot_ms; a roll outside [-pi, pi] or a pitch beyond 1.5 rad (or
+either not finite) is skipped.
 HEARTBEAT of an autopilot (autopilot != INVALID): its type; a GROUND_ROVER is a ground vehicle.
 
 Read from a live link (`guard.sources.link`) and from tlog files (`guard.sources.tlog`).

@@ -29,7 +29,8 @@ HOLD_MPS = 1.5                               # the receiver holds its course bel
 
 def slow_drive(tmp_path, seed: int, attacks=(), duration_s=120.0):
     sc = scenario.load("clean")
-    route = dataclasses.replace(sc.route, waypoints_m=tuple((p[0], p[1], v) for p, v in zip(sc.route.waypoints_m, SLOW)))
+    route = dataclasses.replace(sc.route,
+                                waypoints_m=tuple((p[0], p[1], v) for p, v in zip(sc.route.waypoints_m, SLOW)))
     sc = dataclasses.replace(sc, duration_s=duration_s, route=route, attacks=tuple(attacks),
                              noise=dataclasses.replace(sc.noise, gnss_course_hold_mps=HOLD_MPS))
     tlog = tmp_path / f"slow-{seed}.tlog"

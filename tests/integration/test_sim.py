@@ -511,7 +511,8 @@ def test_the_live_link_honours_an_interval_asked_of_it_and_nothing_malformed():
     listener = mavutil.mavlink_connection("udpin:127.0.0.1:0")
     port = listener.port.getsockname()[1]
     honoured: list = []
-    link = LiveLink(f"udpout:127.0.0.1:{port}", Encoder(), stream_hz=1.0, on_request=lambda n, i: honoured.append((n, i)))
+    link = LiveLink(f"udpout:127.0.0.1:{port}", Encoder(), stream_hz=1.0,
+                    on_request=lambda n, i: honoured.append((n, i)))
     asker = mavlink.MAVLink(None, srcSystem=1, srcComponent=191)
 
     def command(p1, p2, component=COMPONENT_ID):

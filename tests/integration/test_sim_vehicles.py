@@ -424,7 +424,8 @@ def test_a_car_s_steering_moves_its_yaw_acceleration_smoothly():
         # the sideways force's change in a step: k v^2 times the yaw acceleration's, and v times the yaw rate's
         assert max(abs(b - a) for a, b in zip(lateral, lateral[1:])) < 1.1 * (
             k * v * v * jerk * dt + v * sc.route.max_yaw_accel_radps2 * dt)
-    stepwise = Vehicle(scn.parse({**BASE, "route": {**BASE["route"], "sideslip_rad_per_mps2": k}}, "s.toml").route, 90.0)
+    stepwise = Vehicle(scn.parse({**BASE, "route": {**BASE["route"], "sideslip_rad_per_mps2": k}}, "s.toml").route,
+                       90.0)
     stepwise.s.v = v
     stepwise.step(dt, v, target)
     a = stepwise.route.max_yaw_accel_radps2

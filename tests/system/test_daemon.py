@@ -578,7 +578,8 @@ def run_and_stop(procs, tmp_path: Path, name: str, sig: int, seconds: int, *extr
     else:
         assert rc == 0, (rc, daemon.stderr)
         stopped = [line for line in daemon.stdout if "stopped after" in line]
-        assert stopped and f"stopped after {sum(carries for _, carries in stream)} samples" in stopped[-1], daemon.stdout
+        assert stopped and f"stopped after {sum(carries for _, carries in stream)} samples" in stopped[-1], \
+            daemon.stdout
     return mcap
 
 

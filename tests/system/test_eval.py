@@ -63,7 +63,8 @@ def test_one_run_on_request(harness, tmp_path, capsys):
     stem = tmp_path / "freeze-seed1"
     report = json.loads(stem.with_suffix(".json").read_text())
     assert report["alarms"][0]["channel"] == "frozen" and stem.with_suffix(".png").stat().st_size > 0
-    assert f"first alarm at GNSS sample {report['alarms'][0]['gnss_index']} (gnss_pos frozen)" in capsys.readouterr().out
+    assert (f"first alarm at GNSS sample {report['alarms'][0]['gnss_index']} (gnss_pos frozen)"
+            in capsys.readouterr().out)
     assert harness.main(["--figure", "no such case", "1", "--out", str(tmp_path)]) == 2
     assert "the cases are" in capsys.readouterr().err
 

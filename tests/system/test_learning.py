@@ -7,8 +7,9 @@ part of the attack for a compass offset. guard learns only while every test is w
 threshold (guard.core.judge.CALM_RATIO): these drives show the attack still caught, at most one GNSS
 sample later than by a filter that learns throughout, and the offset at the alarm within a degree of the one learnt
 before the attack began and nearer to it than that filter's. (The alarm's rewind then restores the
-offset of the epoch before the attack's onset as well.) The vehicles have a compass 4 degrees off (the learning has work to do), at
-a 1 Hz and a 5 Hz receiver (the harness's second noise family, seeds 0 and 2).
+offset of the epoch before the attack's onset as well.) The vehicles have a compass 4 degrees off
+(the learning has work to do), at a 1 Hz and a 5 Hz receiver (the harness's second noise family,
+seeds 0 and 2).
 """
 
 import dataclasses

@@ -27,7 +27,8 @@ def drives(tmp_path_factory):
     work = tmp_path_factory.mktemp("tune")
     base = scn.load("clean")
     late = dataclasses.replace(base, duration_s=110.0, noise=dataclasses.replace(base.noise, gnss_delay_s=0.2),
-                               route=dataclasses.replace(base.route, sideslip_rad_per_mps2=SLIP, max_yaw_jerk_radps3=2.0))
+                               route=dataclasses.replace(base.route, sideslip_rad_per_mps2=SLIP,
+                                                         max_yaw_jerk_radps3=2.0))
     paths = {}
     for seed in (1, 2, 3):
         paths[seed] = str(work / f"clean{seed}.tlog")

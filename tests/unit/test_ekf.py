@@ -48,8 +48,8 @@ def numerical_jacobian(f, x: np.ndarray, eps: float = 1e-5) -> np.ndarray:
 def process_noise(cfg: FilterConfig, T: float) -> np.ndarray:
     """Q = diag(q^2) T, q the random-walk rates of the config, in state order."""
     q = [cfg.q_pos_m, cfg.q_pos_m, cfg.q_heading_rad, cfg.q_vel_mps, cfg.q_vel_mps, cfg.q_yaw_rate_radps,
-         cfg.q_accel_mps2, cfg.q_accel_mps2, cfg.q_gyro_bias_radps, cfg.q_accel_bias_mps2, cfg.q_accel_bias_mps2, cfg.q_mag_offset_rad,
-         cfg.q_slip_rad_per_mps2, cfg.q_sensors_ahead_m]
+         cfg.q_accel_mps2, cfg.q_accel_mps2, cfg.q_gyro_bias_radps, cfg.q_accel_bias_mps2, cfg.q_accel_bias_mps2,
+         cfg.q_mag_offset_rad, cfg.q_slip_rad_per_mps2, cfg.q_sensors_ahead_m]
     return np.diag(np.square(q)) * T
 
 
@@ -536,7 +536,8 @@ def test_gnss_latency_is_off_by_default_and_each_vehicle_reads_its_own_key():
     for ground in (False, True):
         assert np.array_equal(default.velocity(fix, x, a, ground).R, default.velocity(fix, x, None, ground).R)
     base = default.velocity(fix, x, None, True).R[1, 1]
-    wheels, air = GnssAiding(FilterConfig(gnss_latency_sigma_s=0.2)), GnssAiding(FilterConfig(gnss_latency_sigma_air_s=0.2))
+    wheels, air = (GnssAiding(FilterConfig(gnss_latency_sigma_s=0.2)),
+                   GnssAiding(FilterConfig(gnss_latency_sigma_air_s=0.2)))
     assert wheels.velocity(fix, x, a, True).R[1, 1] == pytest.approx(base + (0.2 * 3.0) ** 2)
     assert wheels.velocity(fix, x, a, False).R[1, 1] == pytest.approx(base)
     assert air.velocity(fix, x, a, False).R[1, 1] == pytest.approx(base + (0.2 * 3.0) ** 2)

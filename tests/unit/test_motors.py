@@ -129,11 +129,11 @@ def _said(levels):
 @pytest.mark.parametrize("seed", range(5))
 def test_the_motors_are_heard_starting_and_stopping_and_a_still_imu_never_starts_them(seed):
     """A still IMU (0.03 to 0.05 m/s^2 of noise, 10 minutes at 50 Hz) never starts its motors; motors
-    of 0.5 m/s^2 from 20 s to 80 s are heard starting within 0.5 s and stopping within STOP_S + 1 s (the level smoothed);
-    an IMU that vibrates from its first sample (a log begun in flight) has no start, but its stop, to
-    0.03 m/s^2 and to a noisy still IMU's 0.06 (with no still level heard, the stop's line is the
-    running level over RISE, between VIB_FLOOR / 2 and VIB_FLOOR), and a flight whose vibration swings
-    with the throttle between 0.25 and 0.6 m/s^2 never stops."""
+    of 0.5 m/s^2 from 20 s to 80 s are heard starting within 0.5 s and stopping within STOP_S + 1 s
+    (the level smoothed); an IMU that vibrates from its first sample (a log begun in flight) has no
+    start, but its stop, to 0.03 m/s^2 and to a noisy still IMU's 0.06 (with no still level heard,
+    the stop's line is the running level over RISE, between VIB_FLOOR / 2 and VIB_FLOOR), and a
+    flight whose vibration swings with the throttle between 0.25 and 0.6 m/s^2 never stops."""
     still = 0.03 + 0.02 * seed / 4
     assert _said(_levels(lambda t: still, 600.0, seed)) == []
     said = _said(_levels(lambda t: 0.5 if 20.0 <= t < 80.0 else still, 120.0, seed))

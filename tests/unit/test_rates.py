@@ -108,7 +108,8 @@ def test_asked_again_then_the_imu_that_did_not_come_is_said_once():
         if asked := r.due(t):
             tries.append(ap.asked(asked))
     assert tries == [[("interval", "RAW_IMU", rates.IMU_HZ)]] * rates.TRIES
-    assert len(said) == 1 and said[0].startswith("RAW_IMU at 2.0 Hz though asked for 50 Hz") and "SRn_RAW_SENS" in said[0]
+    assert (len(said) == 1 and said[0].startswith("RAW_IMU at 2.0 Hz though asked for 50 Hz")
+            and "SRn_RAW_SENS" in said[0])
 
 
 def test_an_imu_raised_but_not_to_50_hz_and_fast_enough_to_integrate_is_not_said():

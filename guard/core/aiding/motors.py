@@ -4,10 +4,10 @@ A compass sits among the motors' and the battery's wires, and their current is a
 at rest it reads within a degree of the heading, and as the motors spin up and the vehicle lifts off
 it is turned by a few to tens of degrees, then by about as much for as long as the current holds
 (ArduPilot's compassmot calibration measures it per ampere, and its EKF resets its yaw and its
-field states once the vehicle is in the air, for what it met on the ground). On the real flights of the README the compass read within 0.8 degrees
-of guard's heading before the motors and 5 to 39 degrees off in the first seconds after lift-off,
-and 10 of the 51 magnetometer alarms came within 10 s of the motors' start (`python
-tools/real_logs.py FOLDERS`: those flights before and after this).
+field states once the vehicle is in the air, for what it met on the ground). On the real flights of
+the README the compass read within 0.8 degrees of guard's heading before the motors and 5 to 39
+degrees off in the first seconds after lift-off, and 10 of the 51 magnetometer alarms came within
+10 s of the motors' start (`python tools/real_logs.py FOLDERS`: those flights before and after this).
 
 The motors are heard in the IMU: their vibration is the accelerometers' short noise
 (guard.core.aiding.imu.ImuNoise.vibration: the median of the last few second differences), which a

@@ -10,7 +10,8 @@ Units, as ArduPilot logs them, converted here to the samples' SI units:
   and on no other: a 10 Hz compass among 50 Hz IMU samples is 10 measurements a second, not 50 (the
   same error counted five times over, which a CUSUM sums into alarms).
 - GPS: Status (AP_GPS::GPS_Status, 3 = 3D fix and better), Lat/Lng degE7, Alt cm, Spd m/s, GCrs deg
-  (ground course), VZ m/s, HDop (stored x 100, 'c'). GPA (written with the same TimeUS): HAcc m and SAcc m/s, stored in cm ('C').
+  (ground course), VZ m/s, HDop (stored x 100, 'c'). GPA (written with the same TimeUS): HAcc m and
+  SAcc m/s, stored in cm ('C').
 - ATT: Roll, Pitch in centidegrees ('c'); a roll beyond 180 degrees or a pitch beyond 1.5 rad is corrupt.
 """
 
