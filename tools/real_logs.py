@@ -1,7 +1,8 @@
 """Every log in some folders replayed through guard: a line per log (its format, length, alarms by
 sensor, the largest statistic/threshold per sensor, how far the estimate stood from the fixes, the
 receiver's own largest jump between fixes, and guard replay's line on a compass that reads off by
-heading, guard.runtime.deviation), then the totals. For logs
+heading, guard.runtime.deviation), then the totals, with how many of the logs guard run would warn
+of such a compass on (its LiveCheck, played through each log beside the replay). For logs
 of flights with no attack, every alarm is a false one or a fault in the vehicle: this is how guard is
 measured on real vehicles it was never tuned on.
 
@@ -48,7 +49,7 @@ from guard.config import parse, read                 # noqa: E402
 from guard.errors import GuardError                  # noqa: E402
 from guard.core.geo import LocalFrame                # noqa: E402
 from guard.model.samples import GnssFix, ImuSample   # noqa: E402
-from guard.runtime.deviation import SAY_DEG, Headings, compass_fits, said   # noqa: E402
+from guard.runtime.deviation import SAY_DEG, Headings, LiveCheck, compass_fits, said   # noqa: E402
 from guard.runtime.replay import replay              # noqa: E402
 import pymap3d                                       # noqa: E402
 from tools.autopilot_view import SAW_TOP, read_log, report_time_as_logged, saw_too, view   # noqa: E402
@@ -196,7 +197,9 @@ def one(job: tuple[str, str | None, tuple[str, ...], tuple[str, ...], bool]) -> 
     try:
         cfg = config_of(config, sets)
         headings = Headings(min_imu_hz=cfg.monitor.min_imu_hz)
-        r = replay(path, cfg, listeners=[span, headings])
+        live: list[str] = []                                # what guard run would say of the compass
+        check = LiveCheck(live.append, cfg.monitor.min_imu_hz)
+        r = replay(path, cfg, listeners=[span, headings, check])
     except GuardError as e:
         return {"log": path, "error": str(e)}
     iron, before, first_s = compass_fits(headings, r)       # as guard replay fits it
@@ -208,7 +211,11 @@ def one(job: tuple[str, str | None, tuple[str, ...], tuple[str, ...], bool]) -> 
            "warnings": [n["text"] for n in r["notices"] if n["level"] == "warning"], "attacks": {},
            "receiver_jump_m": round(span.jump, 2),
            "compass_deviation": {**iron, **({"before_first_alarm": before} if before else {})},
-           "compass_said": said(iron, before, first_s)}
+           "compass_said": said(iron, before, first_s),
+           "compass_said_live": None if not live else {
+               "line": live[0], "time_usec": check.said_us,
+               "at_first_alarm": check.said_us == min((a["time_usec"] for a in r["alarms"] if a["sensor"] == "mag"),
+                                                      default=None)}}
     if ask and r["format"] in ("dataflash", "ulog"):
         out["autopilot_saw"] = autopilot_saw(path, r)
     for spec in attacks:
@@ -320,6 +327,11 @@ def main(argv=None) -> int:
         print(f"guard replay says the compass read {SAY_DEG:g} degrees or more off by heading on {len(off)} of them "
               f"({sure} before its first alarm), which raised {sum(r['alarms'].get('mag', 0) for r in off)} of the "
               f"{total.get('mag', 0)} magnetometer alarms")
+    live = [r["compass_said_live"] for r in results if r.get("compass_said_live")]
+    if live or off:
+        at_alarm = sum(1 for x in live if x["at_first_alarm"])
+        print(f"guard run would say it on {len(live)} ({at_alarm} at the magnetometer's first alarm, the others "
+              f"at a minute's fit)")
     if args.autopilot:
         print(f"the autopilot's own EKF saw {saw[0]} of the {saw[1]} GNSS velocity alarms it could be asked about "
               f"too (DataFlash and ULog logs: one of its {SAW_TOP} largest windows of the flight so far, the same "

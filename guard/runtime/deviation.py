@@ -313,6 +313,7 @@ class LiveCheck(Headings):
         self.done = False
         self.before: dict | None = None             # the fit before the magnetometer's first alarm
         self.first_alarm: int | None = None         # ... and its GNSS sample k
+        self.said_us: int | None = None             # when it said its line (the samples' clock)
         self._next_us: int | None = None
 
     def on_sample(self, sample) -> None:
@@ -326,7 +327,7 @@ class LiveCheck(Headings):
             self._next_us = t + CHECK_S * 1e6
         elif t >= self._next_us:
             self._next_us = t + CHECK_S * 1e6
-            self.check()
+            self.check(t)
 
     def on_events(self, events) -> None:
         if self.done or self.first_alarm is not None:
@@ -338,25 +339,26 @@ class LiveCheck(Headings):
         self.before = iron_of(self, alarm.t_us)
         self.before.pop("arrays", None)
         if explains(self.before):
-            self._say(self.before)
+            self._say(self.before, alarm.t_us)
 
-    def check(self) -> None:
-        """Fit what it holds (the latest LIVE_ROWS readings); say the line, or stop where the turns show
-        a compass that reads true."""
+    def check(self, t_us: int) -> None:
+        """Fit what it holds (the latest LIVE_ROWS readings) at t_us; say the line, or stop where the
+        turns show a compass that reads true."""
         self._trim()
         whole = iron_of(self)
         whole.pop("arrays", None)
         if chosen(whole, self.before) is not None:
-            self._say(whole)
+            self._say(whole, t_us)
         elif whole.get("shown"):           # turned enough to show an iron, and none explains the compass
             self._stop()
 
-    def _say(self, fit_: dict) -> None:
+    def _say(self, fit_: dict, t_us: int) -> None:
         line = (f"compass reads up to {fit_['max_deviation_deg']:.0f} deg off by heading (fitted on "
                 f"{fit_['covered_deg']:.0f} deg of turns): calibrate it, or move it from the wiring")
         if fit_ is not self.before and self.first_alarm is not None:
             line += (f"; or a field came in flight (an attack fits alike): its first alarm, k={self.first_alarm}, "
                      "came before the turns could tell")
+        self.said_us = t_us
         self.say(line)
         self._stop()
 
