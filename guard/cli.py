@@ -27,7 +27,7 @@ def _replay(args) -> int:
         cfg = replace(cfg, monitor=replace(cfg.monitor, detector=replace(cfg.monitor.detector, name=args.detector)))
     cfg = _with_system_id(cfg, args.system_id)
     from guard.runtime.deviation import Headings, compass_fits, said
-    headings = Headings(min_imu_hz=cfg.monitor.min_imu_hz)     # the compass against the gyro over the whole log
+    headings = Headings(cfg=cfg.monitor)    # the compass against the gyro over the whole log
     listeners = [headings]
     trace = Trace() if args.plot else None
     if trace:

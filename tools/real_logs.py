@@ -196,9 +196,9 @@ def one(job: tuple[str, str | None, tuple[str, ...], tuple[str, ...], bool]) -> 
     span = Span()
     try:
         cfg = config_of(config, sets)
-        headings = Headings(min_imu_hz=cfg.monitor.min_imu_hz)
+        headings = Headings(cfg=cfg.monitor)
         live: list[str] = []                                # what guard run would say of the compass
-        check = LiveCheck(live.append, cfg.monitor.min_imu_hz)
+        check = LiveCheck(live.append, cfg.monitor)
         r = replay(path, cfg, listeners=[span, headings, check])
     except GuardError as e:
         return {"log": path, "error": str(e)}

@@ -152,7 +152,7 @@ class Daemon:
         self._output_only = [k for k in (self.link, self.gcs) if k is not None and k is not self.source]
         self.pump.sinks.append(self.status)
         # a compass that reads off by heading: said once
-        self.pump.sinks.append(LiveCheck(self._operator, self.cfg.monitor.min_imu_hz))
+        self.pump.sinks.append(LiveCheck(lambda line: self._operator(line, keep=True), self.cfg.monitor))
         self.out(f"guard: listening on {self.connect}" + (f", logging to {self.mcap_path}" if self.log else ""))
         self.started = True
         self.notifier.ready(f"listening on {self.connect}")
@@ -232,12 +232,14 @@ class Daemon:
         who = f"system {ids[0]} sends" if len(ids) == 1 else f"systems {', '.join(map(str, ids))} send"
         return f" ({who} GPS_RAW_INT, guard reads system {self.cfg.link.system_id}: --system-id or link.system_id)"
 
-    def _operator(self, text: str, level: str = "warning", send: bool = True, logged: bool = False) -> None:
+    def _operator(self, text: str, level: str = "warning", send: bool = True, logged: bool = False,
+                  keep: bool = False) -> None:
+        """`keep`: a line said once, sent when the STATUSTEXT rate limit allows rather than dropped."""
         (log.warning if level == "warning" else log.info)("%s", text)
         if self.log is not None and not logged:     # the log holds what the operator was told
             self.log.note(self.monitor.t_us or 0, level, text)
         if send:
-            self.status.statustext(f"GUARD {text}", level)
+            self.status.statustext(f"GUARD {text}", level, keep)
 
     def summary(self) -> str:
         skipped = Counter(self.monitor.skipped)

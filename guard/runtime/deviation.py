@@ -16,7 +16,8 @@ as guard levels it, integrates to Gamma(t), and
 
     chi_m(t) = chi(t) + dev(chi(t), d),   chi(t) = (1 + s) Gamma(t) + k0 + k1 t
 
-with per stretch k0 (where the heading started) and k1 (the gyro's bias), per log s (the gyro's
+with per stretch k0 (where the heading started) and k1 (the gyro's bias; a stretch longer than PIECE_S
+is cut into pieces, each with its own, as a gyro's bias wanders over minutes), per log s (the gyro's
 scale, held near 0 by a prior of GYRO_SCALE: over half a circle a deviation looks like a scale
 error), fitted by iteratively reweighted Gauss-Newton (Huber's weights). Per log: d, its standard
 error (counting one independent reading per CORR_S: a compass's errors last seconds), the largest
@@ -31,7 +32,8 @@ folders of logs (and fits the motors' field beside it).
 `LiveCheck` is the same for `guard run`: it keeps fewer readings (one per LIVE_ROW_S, the latest
 LIVE_ROWS of them), fits them every CHECK_S of the samples' time and at the magnetometer's first
 alarm, and says its line once (a WARNING on the link and in the log), the first time a fit explains
-the compass; once the turns show a compass that reads true it stops and holds nothing. An operator
+the compass; once the turns show a compass that reads true (over the readings before the first
+alarm, where there was one) it stops and holds nothing. An operator
 hears in the first minutes of turning that the compass needs calibrating, rather than reading it off
 the magnetometer's alarms.
 """
@@ -39,18 +41,22 @@ the magnetometer's alarms.
 from __future__ import annotations
 
 import math
+from collections import Counter
 from dataclasses import asdict, dataclass
 
 import numpy as np
 
 from guard.core.aiding.imu import level
 from guard.core.aiding.tilt import Tilt
+from guard.core.monitor import MonitorConfig
+from guard.core.timebase import Timebase
 from guard.model.events import Alarm
-from guard.model.samples import Attitude, ImuSample
+from guard.model.samples import Attitude, GnssFix, ImuSample
 from guard.model.sensors import Sensor
 
 GAP_S = 0.5             # a stretch ends at a gap in the IMU this long (or a clock that goes back)
 MIN_STRETCH_S = 10.0    # shorter stretches are left out
+PIECE_S = 60.0          # a longer stretch is fitted in pieces this long at most, each with its own gyro bias
 ROW_S = 0.05            # one compass reading kept per this long
 HUBER = 2.5             # residuals beyond this many robust sigmas weigh less
 ITERATIONS = 25         # at most; the fit stops where no parameter moves by CONVERGED
@@ -63,8 +69,6 @@ MIN_FIELD = 0.2         # the field left once the iron is taken away: a fit that
 GYRO_SCALE = 0.01       # the gyro's scale error, 1 sigma (a calibrated MEMS gyro's): a prior, not a free
                         # parameter, as over half a circle a deviation looks like a scale error
 MIN_COVER_DEG = 180.0   # the headings read must cover this much of the circle for the iron to be shown
-MIN_IMU_HZ = 8.0        # a slower IMU (telemetry) is not integrated, as guard does not (monitor.min_imu_hz's
-                        # default; guard replay and guard run pass the configured one)
 MAX_STRETCHES = 30      # the longest stretches fitted, at most (each has its own start and gyro bias)
 MAX_ROWS = 40_000       # readings fitted, at most: over half an hour of them
 SAY_DEG = 5.0           # a deviation this large guard replay says, where its fit shows it beyond its own
@@ -74,18 +78,25 @@ SAY_DEG = 5.0           # a deviation this large guard replay says, where its fi
 EXPLAINS = 0.7
 CHECK_S = 60.0          # guard run fits what it heard this often (the samples' time)
 LIVE_ROW_S = 0.2        # ... from one compass reading per this long
-LIVE_ROWS = 6000        # ... the latest this many (20 minutes of them)
-LIVE_STRETCHES = 10     # ... in at most this many stretches (a lossy link's gaps cut many short ones)
+LIVE_ROWS = 3000        # ... the latest this many (10 minutes of them): a fit of a few milliseconds
+LIVE_STRETCHES = 10     # ... in at most this many stretches or pieces (a lossy link's gaps cut many short ones)
 
 
 class Headings:
     """A replay's listener: each compass reading's heading and the gyro's integral since its stretch began.
-    It reads samples only (the monitor need not record its tests for it)."""
+    It reads samples only (the monitor need not record its tests for it), and only those the monitor
+    takes: the core's time base (guard.core.timebase) drops a frame sent again, one out of order and a
+    lone wild stamp here as it does there, and confirms a reboot's new clock. `cfg`: the monitor's
+    configuration (its min_imu_hz and max_gap_s)."""
 
     needs_tests = False
 
-    def __init__(self, row_s: float = ROW_S, max_stretches: int = MAX_STRETCHES, min_imu_hz: float = MIN_IMU_HZ):
-        self.row_s, self.max_stretches, self.min_imu_hz = row_s, max_stretches, min_imu_hz
+    def __init__(self, row_s: float = ROW_S, max_stretches: int = MAX_STRETCHES, cfg: MonitorConfig | None = None):
+        cfg = cfg or MonitorConfig()
+        self.row_s, self.max_stretches, self.min_imu_hz = row_s, max_stretches, cfg.min_imu_hz
+        self.timebase = Timebase(cfg.max_gap_s, Counter())
+        self._now: int | None = None        # the last sample taken, of either kind
+        self.taken = False                  # whether the last sample was an IMU sample taken
         self.tilt = Tilt()
         self.stretches: list[list[tuple[float, float, float]]] = []   # (t s, Gamma, chi_m)
         self._t: int | None = None
@@ -94,11 +105,25 @@ class Headings:
         self.imu_samples = 0
 
     def on_sample(self, sample) -> None:
+        self.taken = False
         if isinstance(sample, Attitude):
             self.tilt.set(sample)
             return
-        if not isinstance(sample, ImuSample):
+        gnss = isinstance(sample, GnssFix)
+        if not (gnss and sample.fix_ok or isinstance(sample, ImuSample)):
             return
+        kind = "gnss" if gnss else "imu"
+        verdict = self.timebase.check(kind, sample.t_us, self._now)
+        if verdict == "drop":
+            return
+        if verdict == "rebase":
+            self.timebase.reset()
+            self.timebase.check(kind, sample.t_us, None)
+            self._t = None                  # a new clock: a new stretch
+        self._now = sample.t_us
+        if gnss:
+            return
+        self.taken = True
         self.imu_samples += 1
         _, _, rate, mag, _, _ = level(sample, *self.tilt.at(sample))
         if self._t is None or not 0 < sample.t_us - self._t <= GAP_S * 1e6:
@@ -124,7 +149,8 @@ class Headings:
         readings by twice the stretches, too large)."""
         rows = (self.stretches if until_s is None else
                 [[x for x in r if x[0] < until_s] for r in self.stretches])
-        kept = [np.array(r) for r in rows if len(r) > 20 and r[-1][0] - r[0][0] >= MIN_STRETCH_S]
+        kept = [piece for r in rows if len(r) > 20 and r[-1][0] - r[0][0] >= MIN_STRETCH_S
+                for piece in pieces(np.array(r))]
         if not kept:
             return None
         if len(kept) > self.max_stretches:
@@ -137,6 +163,18 @@ class Headings:
                 np.concatenate([a[:, 2] for a in kept]),
                 np.concatenate([np.full(len(a), j) for j, a in enumerate(kept)]),
                 np.concatenate([a[:, 0] for a in kept]))
+
+
+def pieces(a: np.ndarray) -> list[np.ndarray]:
+    """A stretch's readings cut into pieces of equal length, none longer than PIECE_S: each is fitted
+    with its own start and gyro bias, as a MEMS gyro's bias wanders over minutes (one bias over a
+    long stretch took that wander for an iron: 7 degrees on ArduPilot's SITL rover, whose compass has
+    none, against under 1 in pieces)."""
+    n = max(1, math.ceil((a[-1, 0] - a[0, 0]) / PIECE_S))
+    if n == 1:
+        return [a]
+    edges = a[0, 0] + (a[-1, 0] - a[0, 0]) * np.arange(1, n) / n
+    return [p for p in np.split(a, np.searchsorted(a[:, 0], edges)) if len(p) > 20]
 
 
 def deviations(chi: np.ndarray, dx: float, dy: float):
@@ -307,8 +345,8 @@ class LiveCheck(Headings):
     calibration is blamed alone only where the readings before the first alarm show the iron. Once it
     has said its line, or the turns show a compass that reads true, it stops listening."""
 
-    def __init__(self, say, min_imu_hz: float = MIN_IMU_HZ):
-        super().__init__(LIVE_ROW_S, LIVE_STRETCHES, min_imu_hz)
+    def __init__(self, say, cfg: MonitorConfig | None = None):
+        super().__init__(LIVE_ROW_S, LIVE_STRETCHES, cfg)
         self.say = say
         self.done = False
         self.before: dict | None = None             # the fit before the magnetometer's first alarm
@@ -320,7 +358,7 @@ class LiveCheck(Headings):
         if self.done:
             return
         super().on_sample(sample)
-        if not isinstance(sample, ImuSample):
+        if not self.taken:
             return
         t = sample.t_us
         if self._next_us is None or t < self._next_us - CHECK_S * 1e6:     # the first, or a clock gone back
@@ -340,6 +378,8 @@ class LiveCheck(Headings):
         self.before.pop("arrays", None)
         if explains(self.before):
             self._say(self.before, alarm.t_us)
+        elif self.before.get("shown"):      # the turns before it showed a compass that read true: what
+            self._stop()                    # came after is no calibration's
 
     def check(self, t_us: int) -> None:
         """Fit what it holds (the latest LIVE_ROWS readings) at t_us; say the line, or stop where the
@@ -347,8 +387,9 @@ class LiveCheck(Headings):
         self._trim()
         whole = iron_of(self)
         whole.pop("arrays", None)
-        if chosen(whole, self.before) is not None:
-            self._say(whole, t_us)
+        fit_ = chosen(whole, self.before)
+        if fit_ is not None:
+            self._say(fit_, t_us)
         elif whole.get("shown"):           # turned enough to show an iron, and none explains the compass
             self._stop()
 
@@ -359,8 +400,8 @@ class LiveCheck(Headings):
             line += (f"; or a field came in flight (an attack fits alike): its first alarm, k={self.first_alarm}, "
                      "came before the turns could tell")
         self.said_us = t_us
+        self._stop()                        # said once, whatever `say` does
         self.say(line)
-        self._stop()
 
     def _stop(self) -> None:
         self.done = True

@@ -55,6 +55,7 @@ class StatusText(Sink):
         self._next_heartbeat = 0.0
         self._next_stat = 0.0
         self._sent: list[float] = []
+        self._owed: list[tuple[str, str]] = []   # texts kept through the rate limit, sent as it allows
         self._text_id = 0                   # the last long STATUSTEXT's chunk id
         self._standing: dict[str, int] = {}     # sensor -> t_us of its last said repeat
         self._said: dict[str, float] = {}       # sensor -> the largest |offset| said of its alarms
@@ -100,8 +101,11 @@ class StatusText(Sink):
             self._said[e.sensor] = max(self._said.get(e.sensor, 0.0), abs(e.offset))
 
     def tick(self, ratio=lambda: 0.0) -> None:
-        """Heartbeat and the statistic (`ratio()`, called only when due), when due."""
+        """Heartbeat and the statistic (`ratio()`, called only when due), when due; a text kept through
+        the rate limit, when it allows."""
         now = time.monotonic()
+        while self._owed and self._room(now):
+            self.statustext(*self._owed.pop(0))
         if now >= self._next_heartbeat:
             self._next_heartbeat = now + 1.0 / self.cfg.heartbeat_hz
             self._send(lambda m: m.heartbeat_send(mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID,
@@ -112,14 +116,17 @@ class StatusText(Sink):
             ms = int((now - self.t0) * 1000) & 0xFFFFFFFF
             self._send(lambda m: m.named_value_float_send(ms, b"grd_ratio", value))
 
-    def statustext(self, text: str, level: str) -> bool:
+    def statustext(self, text: str, level: str, keep: bool = False) -> bool:
         """Send a STATUSTEXT at `level` ("critical", "warning" or "notice"). Warnings and notices are
-        rate-limited; a CRITICAL alarm never is (it is sent once). Returns whether it went out."""
+        rate-limited; a CRITICAL alarm never is (it is sent once). Returns whether it went out; `keep`:
+        one the limit holds back is sent later (`tick`), not dropped (a line said once)."""
         critical = level == "critical"
         now = time.monotonic()
-        self._sent = [t for t in self._sent if now - t < 1.0]
-        if not critical and len(self._sent) >= STATUSTEXT_PER_S:
-            self.skipped["statustext_rate_limited"] += 1
+        if not critical and not self._room(now):
+            if keep:
+                self._owed.append((text, level))
+            else:
+                self.skipped["statustext_rate_limited"] += 1
             return False
         self._sent.append(now)
         severity = {"critical": mavlink.MAV_SEVERITY_CRITICAL, "warning": mavlink.MAV_SEVERITY_WARNING}.get(
@@ -137,6 +144,11 @@ class StatusText(Sink):
         for seq, chunk in enumerate(chunks):
             self._send(lambda m: m.statustext_send(severity, chunk, id=self._text_id, chunk_seq=seq))
         return True
+
+    def _room(self, now: float) -> bool:
+        """Whether the rate limit lets a warning or a notice out now."""
+        self._sent = [t for t in self._sent if now - t < 1.0]
+        return len(self._sent) < STATUSTEXT_PER_S
 
     def _send(self, fn) -> None:
         if self.link is not None:

@@ -532,6 +532,25 @@ def test_alarm_not_lost_to_statustext_rate_limit():
     assert texts(got, CRITICAL), (texts(got), dict(g.d.link.skipped))
 
 
+def test_a_line_said_once_waits_for_the_rate_limit_rather_than_being_dropped():
+    """Warnings beyond four a second are dropped and counted; a line said once (the compass's, below)
+    is kept and goes out when the limit allows, whole."""
+    with in_process() as g:
+        peer = g.connect()
+        feed(peer, frames(*scenario_messages("paper", until_s=1)), g.d)
+        for i in range(4):
+            g.d._operator(f"filler {i}")
+        g.d._operator("a long line said once, which a ground station gets in two chunks at most", keep=True)
+        g.d._operator("one more, dropped")
+        time.sleep(1.5)                             # the loop ticks on, and the limit opens
+        got = drain(peer)
+    said = texts(got, WARNING)
+    assert [t for t in said if t.startswith("GUARD filler")] == [f"GUARD filler {i}" for i in range(4)], said
+    assert "".join(t for t in said if not t.startswith("GUARD filler")) == \
+        "GUARD a long line said once, which a ground station gets in two chunks at most", said
+    assert g.d.link.skipped["statustext_rate_limited"] == 1
+
+
 def test_operator_lines_are_not_held_back_on_a_pipe():
     port = free_udp_port()
     env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}

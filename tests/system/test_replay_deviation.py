@@ -4,6 +4,7 @@ it; where they turned too little, both that and what else fits alike, a field th
 when the magnetometer's first alarm came. An attack on the compass is never put down to calibration."""
 
 import dataclasses
+import itertools
 import json
 import subprocess
 import sys
@@ -11,7 +12,9 @@ import sys
 import numpy as np
 import pytest
 
+from guard.model.samples import ImuSample
 from guard.runtime import deviation
+from guard.runtime.replay import replay
 from guard.runtime.deviation import SAY_DEG, LiveCheck, said
 from guard_sim import scenario as scn
 from guard_sim.run import run
@@ -123,3 +126,32 @@ def test_the_live_check_holds_the_latest_readings_only(monkeypatch):
     check.stretches = [[(float(t), 0.0, 0.0) for t in range(300)]]
     check._trim()
     assert len(check.stretches[0]) == 120 and check.stretches[0][0][0] == 180.0
+
+
+def test_the_live_check_takes_the_samples_the_monitor_takes(tmp_path):
+    """A frame sent again, and a lone wild stamp every 10 s, are dropped by the fit as the monitor drops
+    them (they would otherwise cut the stretches short, and set the minute's fit off at once): the
+    iron is still said, once, with its size."""
+    base = scn.load("clean")
+    sc = dataclasses.replace(base, duration_s=200.0,
+                             noise=dataclasses.replace(base.noise, mag_iron_x=0.15, mag_iron_y=-0.1))
+    log = tmp_path / "iron.tlog"
+    run(sc, 3, tlog=str(log))
+    n = itertools.count()
+
+    def hostile(samples):
+        for s in samples:
+            yield s
+            if isinstance(s, ImuSample):
+                i = next(n)
+                if i % 50 == 0:
+                    yield s                                             # sent again
+                if i % 500 == 250:
+                    yield dataclasses.replace(s, t_us=s.t_us + 3_600_000_000)   # a wild stamp, an hour ahead
+    said: list[str] = []
+    check = LiveCheck(said.append)
+    report = replay(str(log), listeners=[check], inject=hostile)
+    assert report["skipped"].get("imu_resent") and report["skipped"].get("time_off_base"), report["skipped"]
+    assert len(said) == 1, said
+    size = float(said[0].split("up to ")[1].split(" deg")[0])
+    assert abs(size - np.degrees(np.arcsin(np.hypot(0.15, -0.1)))) <= 2.0, said
