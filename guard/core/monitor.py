@@ -181,7 +181,8 @@ class Monitor:
             if verdict == "drop":                   # not a sample of the stream: not counted in k either
                 return events
             if verdict == "rebase":
-                events += self._reinitialise(sample.t_us, f"time jumped {(sample.t_us - self.t_us) / 1e6:+.1f} s",
+                base = self.t_us if self.t_us is not None else self.timebase.last[kind]   # no filter yet
+                events += self._reinitialise(sample.t_us, f"time jumped {(sample.t_us - base) / 1e6:+.1f} s",
                                              keep_learnt=True)
                 self.timebase.check(kind, sample.t_us, None)
         if gnss:

@@ -9,6 +9,12 @@ base (behind it by more than BACKWARD_US, or ahead by more than `max_gap_s`) is 
   frame cannot re-initialise guard.
 A sample on the base but older than the last of its own stream (out of order, or the same again) is
 dropped and counted too: the filter never runs backwards.
+
+The base is the filter's time, or, while there is no filter (before the first fix, and after a
+restart until the next one), the latest sample taken of the same kind (a fix may be stamped at its
+time of validity, some hundreds of milliseconds behind the IMU's latest): a lone wild stamp before
+the first fix is dropped as one after it is (it had become every later sample's "last", and all of
+them were dropped as out of order).
 """
 
 from __future__ import annotations
@@ -31,8 +37,11 @@ class Timebase:
         self.candidate.clear()
 
     def check(self, kind: str, t_us: int, now_us: int | None) -> str:
-        """"take", "drop", or "rebase" (a new time base confirmed: start again on it)."""
+        """"take", "drop", or "rebase" (a new time base confirmed: start again on it). `now_us`: the
+        filter's time (None without a filter: the latest sample of this kind taken is the base)."""
         self.heard.add(kind)
+        if now_us is None:
+            now_us = self.last.get(kind)
         if now_us is not None and (t_us < now_us - BACKWARD_US or t_us > now_us + self.max_gap_us):
             c = self.candidate
             if any(abs(t_us - t) > self.max_gap_us for t, _ in c.values()):

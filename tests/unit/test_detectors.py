@@ -644,6 +644,21 @@ def test_core_one_frame_with_a_wild_time_neither_stops_nor_resets_the_filter():
     assert mon.skipped["time_off_base"] == 2 and "gnss_pos" in mon.excluded
 
 
+@pytest.mark.parametrize("shift", [3_600_000_000, -45_000_000])
+def test_core_one_frame_with_a_wild_time_before_the_first_fix_is_dropped_not_the_stream(shift):
+    """Before the first fix there is no filter's time to judge a stamp by: the latest sample taken is
+    the base, so a wild stamp there is dropped as one later would be, not taken as every later
+    sample's last (which dropped them all as out of order, and the filter never started)."""
+    samples = [s for s in drive(30.0, seed=2) if not (isinstance(s, GnssFix) and s.t_us < T0_US + 2_000_000)]
+    k = next(i for i, s in enumerate(samples) if isinstance(s, ImuSample) and s.t_us >= T0_US + 1_000_000)
+    assert not [s for s in samples[:k] if isinstance(s, GnssFix)]          # the IMU's, before the first fix
+    samples[k] = dataclasses.replace(samples[k], t_us=samples[k].t_us + shift)
+    mon, events = run(samples)
+    assert mon.skipped["time_off_base"] == 1 and not mon.skipped["imu_out_of_order"], mon.skipped
+    assert mon.ekf is not None and not of(events, Alarm)
+    assert not [n for n in of(events, Notice) if "re-initialised" in n.text]
+
+
 def test_page_onset_is_the_longest_run_of_a_sample():
     """Two channels alarm on one sample: the onset (for the rewind) is the earlier of their runs."""
     det = PageCusum(ONE, n_channels=2)
