@@ -14,10 +14,11 @@ The fit compares the compass with the gyro, the only other witness of the headin
 each stretch of the log without a gap, the gyro's yaw rate, levelled with the autopilot's attitude
 as guard levels it, integrates to Gamma(t), and
 
-    chi_m(t) = chi(t) + dev(chi(t), d),   chi(t) = (1 + s) Gamma(t) + k0 + k1 t
+    chi_m(t) = chi(t) + dev(chi(t), d),   chi(t) = (1 + s) Gamma(t) + k0 + drift(t)
 
-with per stretch k0 (where the heading started) and k1 (the gyro's bias; a stretch longer than PIECE_S
-is cut into pieces, each with its own, as a gyro's bias wanders over minutes), per log s (the gyro's
+with per stretch k0 (where the heading started) and a drift, continuous, whose slope (the gyro's
+bias) is its own in each piece of the stretch of at most PIECE_S (a gyro's bias wanders over
+minutes: `drift_basis`), per log s (the gyro's
 scale, held near 0 by a prior of GYRO_SCALE: over half a circle a deviation looks like a scale
 error), fitted by iteratively reweighted Gauss-Newton (Huber's weights). Per log: d, its standard
 error (counting one independent reading per CORR_S: a compass's errors last seconds), the largest
@@ -51,12 +52,12 @@ from guard.core.aiding.tilt import Tilt
 from guard.core.monitor import MonitorConfig
 from guard.core.timebase import Timebase
 from guard.model.events import Alarm
-from guard.model.samples import Attitude, GnssFix, ImuSample
+from guard.model.samples import Attitude, ImuSample
 from guard.model.sensors import Sensor
 
 GAP_S = 0.5             # a stretch ends at a gap in the IMU this long (or a clock that goes back)
 MIN_STRETCH_S = 10.0    # shorter stretches are left out
-PIECE_S = 60.0          # a longer stretch is fitted in pieces this long at most, each with its own gyro bias
+PIECE_S = 60.0          # a longer stretch's drift is fitted in pieces this long at most, each its own gyro bias
 ROW_S = 0.05            # one compass reading kept per this long
 HUBER = 2.5             # residuals beyond this many robust sigmas weigh less
 ITERATIONS = 25         # at most; the fit stops where no parameter moves by CONVERGED
@@ -84,9 +85,10 @@ LIVE_STRETCHES = 10     # ... in at most this many stretches or pieces (a lossy 
 
 class Headings:
     """A replay's listener: each compass reading's heading and the gyro's integral since its stretch began.
-    It reads samples only (the monitor need not record its tests for it), and only those the monitor
-    takes: the core's time base (guard.core.timebase) drops a frame sent again, one out of order and a
-    lone wild stamp here as it does there, and confirms a reboot's new clock. `cfg`: the monitor's
+    It reads samples only (the monitor need not record its tests for it), and of the IMU's those the
+    core's time base (guard.core.timebase) takes, as the monitor does: a frame sent again, one out of
+    order and a lone wild stamp are dropped, a reboot's new clock confirmed (its base the IMU's latest
+    sample, as the monitor's is before its first fix; after it, the filter's time). `cfg`: the monitor's
     configuration (its min_imu_hz and max_gap_s)."""
 
     needs_tests = False
@@ -95,7 +97,7 @@ class Headings:
         cfg = cfg or MonitorConfig()
         self.row_s, self.max_stretches, self.min_imu_hz = row_s, max_stretches, cfg.min_imu_hz
         self.timebase = Timebase(cfg.max_gap_s, Counter())
-        self._now: int | None = None        # the last sample taken, of either kind
+        self._row_due_us = 0.0              # when the next compass reading is kept
         self.taken = False                  # whether the last sample was an IMU sample taken
         self.tilt = Tilt()
         self.stretches: list[list[tuple[float, float, float]]] = []   # (t s, Gamma, chi_m)
@@ -109,20 +111,15 @@ class Headings:
         if isinstance(sample, Attitude):
             self.tilt.set(sample)
             return
-        gnss = isinstance(sample, GnssFix)
-        if not (gnss and sample.fix_ok or isinstance(sample, ImuSample)):
+        if not isinstance(sample, ImuSample):
             return
-        kind = "gnss" if gnss else "imu"
-        verdict = self.timebase.check(kind, sample.t_us, self._now)
+        verdict = self.timebase.check("imu", sample.t_us, None)     # its base: the IMU's latest taken
         if verdict == "drop":
             return
         if verdict == "rebase":
             self.timebase.reset()
-            self.timebase.check(kind, sample.t_us, None)
+            self.timebase.check("imu", sample.t_us, None)
             self._t = None                  # a new clock: a new stretch
-        self._now = sample.t_us
-        if gnss:
-            return
         self.taken = True
         self.imu_samples += 1
         _, _, rate, mag, _, _ = level(sample, *self.tilt.at(sample))
@@ -135,8 +132,11 @@ class Headings:
                 self.intervals.append(sample.t_us - self._t)
         self._t = sample.t_us
         rows = self.stretches[-1]
-        if mag is not None and (not rows or sample.t_us / 1e6 - rows[-1][0] >= self.row_s):
+        if mag is not None and (not rows or sample.t_us >= self._row_due_us):
             rows.append((sample.t_us / 1e6, self._gamma, math.atan2(-mag[1], mag[0])))
+            # the next a tenth early: an IMU's period a hair under a divisor of row_s (a 50 Hz IMU's
+            # 19,992 us) would otherwise space the readings a whole sample more apart
+            self._row_due_us = sample.t_us + 0.9 * self.row_s * 1e6
 
     def on_events(self, events) -> None:
         pass
@@ -149,8 +149,7 @@ class Headings:
         readings by twice the stretches, too large)."""
         rows = (self.stretches if until_s is None else
                 [[x for x in r if x[0] < until_s] for r in self.stretches])
-        kept = [piece for r in rows if len(r) > 20 and r[-1][0] - r[0][0] >= MIN_STRETCH_S
-                for piece in pieces(np.array(r))]
+        kept = [np.array(r) for r in rows if len(r) > 20 and r[-1][0] - r[0][0] >= MIN_STRETCH_S]
         if not kept:
             return None
         if len(kept) > self.max_stretches:
@@ -165,16 +164,25 @@ class Headings:
                 np.concatenate([a[:, 0] for a in kept]))
 
 
-def pieces(a: np.ndarray) -> list[np.ndarray]:
-    """A stretch's readings cut into pieces of equal length, none longer than PIECE_S: each is fitted
-    with its own start and gyro bias, as a MEMS gyro's bias wanders over minutes (one bias over a
-    long stretch took that wander for an iron: 7 degrees on ArduPilot's SITL rover, whose compass has
-    none, against under 1 in pieces)."""
-    n = max(1, math.ceil((a[-1, 0] - a[0, 0]) / PIECE_S))
-    if n == 1:
-        return [a]
-    edges = a[0, 0] + (a[-1, 0] - a[0, 0]) * np.arange(1, n) / n
-    return [p for p in np.split(a, np.searchsorted(a[:, 0], edges)) if len(p) > 20]
+def drift_basis(t: np.ndarray, stretch: np.ndarray, n_s: int) -> np.ndarray:
+    """The gyro bias's columns: each stretch cut into pieces of equal length, none longer than PIECE_S,
+    each with its own bias, the heading continuous across them. Column j is a piece's hinge, the time
+    spent in it so far (0 before it, its length after it), on its stretch's rows: the heading's drift
+    is then k1_a t over the first piece, k1_a T_a + k1_b (t - T_a) over the next, and so on. One bias
+    over a long stretch took a MEMS gyro's wander over minutes for an iron (7 degrees on ArduPilot's
+    SITL rover, whose compass has none, against under 1 in pieces); a free start for each piece would
+    also take away what a slow turn tells across them."""
+    columns = []
+    for j in range(n_s):
+        m = stretch == j
+        length = float(t[m].max())
+        n = max(1, math.ceil(length / PIECE_S))
+        for a in range(n):
+            start, end = length * a / n, length * (a + 1) / n
+            c = np.zeros(len(t))
+            c[m] = np.clip(t[m] - start, 0.0, end - start)
+            columns.append(c)
+    return np.column_stack(columns)
 
 
 def deviations(chi: np.ndarray, dx: float, dy: float):
@@ -216,11 +224,14 @@ def fit(t, gamma, chi_m, stretch, iron: bool = True,
     k0 = np.array([math.atan2(np.sin(chi_m[stretch == j] - gamma[stretch == j]).mean(),
                               np.cos(chi_m[stretch == j] - gamma[stretch == j]).mean()) for j in range(n_s)])
     n_d = 0 if not iron else 2 if u is None else 4
-    k1, s, d = np.zeros(n_s), 0.0, np.zeros(n_d)
+    B = drift_basis(t, stretch, n_s)
+    n_b = B.shape[1]
+    k1, s, d = np.zeros(n_b), 0.0, np.zeros(n_d)
     rows = np.arange(len(t))
-    n_p = 2 * n_s + 1 + n_d
+    i_s = n_s + n_b                                 # the gyro scale's column; the iron's follow it
+    n_p = i_s + 1 + n_d
     for _ in range(ITERATIONS):
-        chi = (1.0 + s) * gamma + k0[stretch] + k1[stretch] * t
+        chi = (1.0 + s) * gamma + k0[stretch] + B @ k1
         dx, dy = (0.0, 0.0) if n_d == 0 else (d[0], d[1]) if n_d == 2 else (d[0] + d[2] * u, d[1] + d[3] * u)
         dev, d_chi, d_dx, d_dy = deviations(chi, dx, dy)
         r = wrap(chi_m - chi - dev)
@@ -229,27 +240,27 @@ def fit(t, gamma, chi_m, stretch, iron: bool = True,
         g = 1.0 + d_chi
         J = np.zeros((len(t), n_p))
         J[rows, stretch] = g
-        J[rows, n_s + stretch] = g * t
-        J[:, 2 * n_s] = g * gamma
+        J[:, n_s:i_s] = g[:, None] * B
+        J[:, i_s] = g * gamma
         if n_d:
-            J[:, 2 * n_s + 1], J[:, 2 * n_s + 2] = d_dx, d_dy
+            J[:, i_s + 1], J[:, i_s + 2] = d_dx, d_dy
         if n_d == 4:
             J[:, -2], J[:, -1] = d_dx * u, d_dy * u
         N = (J * w[:, None]).T @ J
         rhs = (J * w[:, None]).T @ r
         prior = (sigma / GYRO_SCALE) ** 2          # s ~ N(0, GYRO_SCALE^2), in the residuals' units
-        N[2 * n_s, 2 * n_s] += prior
-        rhs[2 * n_s] -= prior * s
+        N[i_s, i_s] += prior
+        rhs[i_s] -= prior * s
         step = np.linalg.lstsq(N, rhs, rcond=None)[0]
         if n_d:
-            step *= min(1.0, MAX_STEP / max(float(np.linalg.norm(step[2 * n_s + 1:])), 1e-12))
-            d += step[2 * n_s + 1:]
+            step *= min(1.0, MAX_STEP / max(float(np.linalg.norm(step[i_s + 1:])), 1e-12))
+            d += step[i_s + 1:]
             field = math.hypot(d[0], d[1]) if n_d == 2 else float(np.max(np.hypot(d[0] + d[2] * u, d[1] + d[3] * u)))
             if field > 1.0 - MIN_FIELD:
                 return None
         k0 += step[:n_s]
-        k1 += step[n_s:2 * n_s]
-        s += step[2 * n_s]
+        k1 += step[n_s:i_s]
+        s += step[i_s]
         if float(np.max(np.abs(step))) < CONVERGED:
             break
     seconds = sum(float(np.ptp(t[stretch == j])) for j in range(n_s))
