@@ -34,9 +34,8 @@ folders of logs (and fits the motors' field beside it).
 LIVE_ROWS of them), fits them every CHECK_S of the samples' time and at the magnetometer's first
 alarm, and says its line once (a WARNING on the link and in the log), the first time a fit explains
 the compass; once the turns show a compass that reads true (over the readings before the first
-alarm, where there was one) it stops and holds nothing. An operator
-hears in the first minutes of turning that the compass needs calibrating, rather than reading it off
-the magnetometer's alarms.
+alarm, where there was one) it stops and holds nothing. An operator hears in the first minutes of
+turning that the compass needs calibrating, rather than reading it off the magnetometer's alarms.
 """
 
 from __future__ import annotations
@@ -70,7 +69,7 @@ MIN_FIELD = 0.2         # the field left once the iron is taken away: a fit that
 GYRO_SCALE = 0.01       # the gyro's scale error, 1 sigma (a calibrated MEMS gyro's): a prior, not a free
                         # parameter, as over half a circle a deviation looks like a scale error
 MIN_COVER_DEG = 180.0   # the headings read must cover this much of the circle for the iron to be shown
-MAX_STRETCHES = 30      # the longest stretches fitted, at most (each has its own start and gyro bias)
+MAX_STRETCHES = 30      # the longest stretches fitted, at most (each has its own start and drift)
 MAX_ROWS = 40_000       # readings fitted, at most: over half an hour of them
 SAY_DEG = 5.0           # a deviation this large guard replay says, where its fit shows it beyond its own
                         # error (its size less twice its standard error) and explains the compass (its
@@ -80,7 +79,7 @@ EXPLAINS = 0.7
 CHECK_S = 60.0          # guard run fits what it heard this often (the samples' time)
 LIVE_ROW_S = 0.2        # ... from one compass reading per this long
 LIVE_ROWS = 3000        # ... the latest this many (10 minutes of them): a fit of a few milliseconds
-LIVE_STRETCHES = 10     # ... in at most this many stretches or pieces (a lossy link's gaps cut many short ones)
+LIVE_STRETCHES = 10     # ... in at most this many stretches (a lossy link's gaps cut many short ones)
 
 
 class Headings:
@@ -146,7 +145,7 @@ class Headings:
         each reading's time on the samples' clock (s); only the readings before `until_s` (s, on that
         clock) where given. At most `max_stretches` stretches, the longest, and MAX_ROWS readings, every
         k-th where there are more (a long log with many gaps would otherwise make the fit's matrix,
-        readings by twice the stretches, too large)."""
+        readings by the stretches and their minutes, too large)."""
         rows = (self.stretches if until_s is None else
                 [[x for x in r if x[0] < until_s] for r in self.stretches])
         kept = [np.array(r) for r in rows if len(r) > 20 and r[-1][0] - r[0][0] >= MIN_STRETCH_S]
