@@ -254,6 +254,7 @@ class Daemon:
         if self.started:
             self.notifier.stopping()
         self.pump.finish()          # what the core still owed (an alarm's estimate) reaches the log
+        self.status.flush()         # a line kept through the rate limit is not lost with the daemon
         if self.log is not None:
             self.log.close()
             if self.log.errors:

@@ -116,6 +116,14 @@ class StatusText(Sink):
             ms = int((now - self.t0) * 1000) & 0xFFFFFFFF
             self._send(lambda m: m.named_value_float_send(ms, b"grd_ratio", value))
 
+    def flush(self) -> None:
+        """At shutdown: the texts still kept through the rate limit go out now (a line said once is
+        not lost with the daemon; they are few)."""
+        while self._owed:
+            text, level = self._owed.pop(0)
+            self._sent.clear()
+            self.statustext(text, level)
+
     def statustext(self, text: str, level: str, keep: bool = False) -> bool:
         """Send a STATUSTEXT at `level` ("critical", "warning" or "notice"). Warnings and notices are
         rate-limited; a CRITICAL alarm never is (it is sent once). Returns whether it went out; `keep`:

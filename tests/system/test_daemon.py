@@ -551,6 +551,19 @@ def test_a_line_said_once_waits_for_the_rate_limit_rather_than_being_dropped():
     assert g.d.link.skipped["statustext_rate_limited"] == 1
 
 
+def test_a_line_kept_through_the_rate_limit_goes_out_at_shutdown():
+    with in_process() as g:
+        peer = g.connect()
+        feed(peer, frames(*scenario_messages("paper", until_s=1)), g.d)
+        for i in range(4):
+            g.d._operator(f"filler {i}")
+        g.d._operator("kept, then the daemon stops", keep=True)
+        g.d.should_exit = True                      # within the second the limit holds it
+        g.thread.join(10)
+        got = drain(peer)
+    assert "GUARD kept, then the daemon stops" in texts(got, WARNING), texts(got)
+
+
 def test_operator_lines_are_not_held_back_on_a_pipe():
     port = free_udp_port()
     env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}
