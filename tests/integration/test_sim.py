@@ -12,7 +12,6 @@ import dataclasses
 import datetime
 import json
 import struct
-import types
 from pathlib import Path
 
 import guard.core.geo
@@ -23,7 +22,6 @@ import pymap3d
 import pytest
 from pymavlink import mavutil
 
-import guard_sim.sensors
 from guard.runtime.replay import replay
 from guard.sinks.plot import Trace
 from guard_sim import scenario as scn

@@ -207,7 +207,7 @@ def test_a_run_records_what_the_bounds_need(harness):
     """One run of a gyro attack on a drawn vehicle carries its velocity and heading innovation
     variances and the rate the heading was tested at (the IMU's)."""
     import tempfile
-    from tools.evaluation.cases import cases, vehicle
+    from tools.evaluation.cases import cases
     from tools.evaluation.runs import one
     family, name, attacks, duration = next(c for c in cases(["imu"]) if c[1].startswith("gyro"))
     with tempfile.TemporaryDirectory() as work:

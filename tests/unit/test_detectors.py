@@ -9,7 +9,6 @@ import dataclasses
 import math
 
 import numpy as np
-import pymap3d
 import pytest
 
 from guard.core.monitor import Monitor, MonitorConfig
@@ -17,7 +16,7 @@ from guard.core.detectors import DetectorConfig, PageCusum, PaperCusum, make_det
 from guard.core.ekf import FilterConfig
 from guard.model.events import Alarm, Cleared, Estimate, Notice, Tested
 from guard.model.samples import GnssFix, ImuSample
-from unit.synthetic import ALT0, GNSS_EVERY, IMU_DT_US, LAT0, LON0, T0_US, drive, of, run   # noqa: F401
+from unit.synthetic import T0_US, drive, of, run
 
 
 def siegmund_arl1(h: float, k: float, delta: float) -> float:
