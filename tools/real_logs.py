@@ -59,11 +59,15 @@ SUFFIXES = {".tlog", ".bin", ".ulg"}
 
 
 def logs_in(paths: list[str]) -> list[str]:
-    """The logs (by their suffix) in each folder, and each single file; a GuardError names one missing."""
+    """The logs (by their suffix) in each folder and the folders within it, and each single file; a
+    GuardError names one missing, or a folder that holds no log."""
     logs: list[str] = []
     for f in map(Path, paths):
         if f.is_dir():
-            logs += sorted(str(p) for p in f.iterdir() if p.suffix.lower() in SUFFIXES)
+            found = sorted(str(p) for p in f.rglob("*") if p.suffix.lower() in SUFFIXES and p.is_file())
+            if not found:
+                raise GuardError(f"{f}: no log in it or its folders (.tlog, .bin or .ulg)")
+            logs += found
         elif f.exists():
             logs.append(str(f))
         else:
@@ -280,8 +284,8 @@ def main(argv=None) -> int:
                          "(tools/autopilot_view.py): how many it saw too")
     args = ap.parse_args(argv)
     try:                                            # a bad key or file, said before any log runs
-        logs = logs_in(args.folders)
         config_of(args.config, tuple(args.set))
+        logs = logs_in(args.folders)
     except GuardError as e:
         print(f"guard: {e}", file=sys.stderr)
         return 2

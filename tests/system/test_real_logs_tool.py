@@ -21,7 +21,8 @@ def test_a_folder_of_logs_is_a_line_each_and_the_totals(shared, tmp_path):
     if not folder.is_dir():
         pytest.skip(f"{folder} is not here (the shared data folder sits beside the project)")
     (tmp_path / "notes.txt").write_text("not a log")         # not a log's suffix: not listed
-    (tmp_path / "broken.tlog").write_bytes(b"\xfe\x00garbage")
+    (tmp_path / "day 2").mkdir()                           # a folder's folders are searched too
+    (tmp_path / "day 2" / "broken.tlog").write_bytes(b"\xfe\x00garbage")
     got = tool(folder, tmp_path, "--json", tmp_path / "out.json")
     assert got.returncode == 0, got.stderr
     lines = got.stdout.splitlines()
@@ -38,6 +39,9 @@ def test_a_bad_key_or_folder_is_named_and_nothing_runs(tmp_path):
     assert got.returncode == 2 and "monitor.max_wander_factor" in got.stderr and "Traceback" not in got.stderr
     got = tool(tmp_path / "nowhere")
     assert got.returncode == 2 and "nowhere: no such file or folder" in got.stderr
+    (tmp_path / "notes.txt").write_text("not a log")
+    got = tool(tmp_path)
+    assert got.returncode == 2 and "no log in it or its folders" in got.stderr and "Traceback" not in got.stderr
 
 
 def test_an_attack_written_into_real_fixes_is_caught_and_measured(shared, tmp_path):
