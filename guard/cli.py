@@ -67,6 +67,8 @@ def _replay(args) -> int:
         if gap["fixes"]:
             print(f"  the estimate from the fixes: {gap['mean']:.1f} m on average, {gap['max']:.1f} m at most, "
                   f"more than {FixGap.FAR_M:g} m at {100 * gap[f'share_over_{FixGap.FAR_M:g}']:.1f} % of them")
+        for line in timeline(report):
+            print(f"  {line}")
         for note in report["notes"]:
             print(f"  {note}")
         if line := said(iron, before, first_s):
@@ -74,6 +76,27 @@ def _replay(args) -> int:
         for reason, n in sorted(report["skipped"].items(), key=lambda kv: -kv[1]):
             print(f"  skipped {n} {SKIPPED.get(reason, reason.replace('_', ' '))}")
     return 0
+
+
+TIMELINE_LINES = 20       # guard replay lists at most this many alarms, clearances and warnings
+
+
+def timeline(report: dict) -> list[str]:
+    """What the replay's core said, in the order it said it: each alarm (its sensor, axis, offset and
+    GNSS sample, as the daemon says it), each clearance and each WARNING, by the log's own clock; at
+    most TIMELINE_LINES of them, then how many more the report holds."""
+    from guard.model.sensors import UNITS
+    said = [(a["time_usec"], f"ALARM {'|'.join((a['sensor'], *a['ambiguous_with']))} {a['channel']} "
+             f"{a['offset']:+.3g} {UNITS[a['sensor']]} (GNSS sample {a['gnss_index']}"
+             f"{': its alarm stands, again' if a['standing'] else ''})") for a in report["alarms"]]
+    said += [(n["time_usec"], f"WARNING {n['text']}") for n in report["notices"] if n["level"] == "warning"]
+    said += [(c["time_usec"], f"clear {c['sensor']} {c['channel']} (GNSS sample {c['gnss_index']})")
+             for c in report["cleared"]]
+    said.sort(key=lambda ts: ts[0])             # at one time: alarms, warnings, clearances, as the core says them
+    lines = [f"{t / 1e6:9.1f} s  {text}" for t, text in said[:TIMELINE_LINES]]
+    if len(said) > TIMELINE_LINES:
+        lines.append(f"... and {len(said) - TIMELINE_LINES} more alarms, clearances and warnings (--report has them all)")
+    return lines
 
 
 def _run(args) -> int:

@@ -221,3 +221,30 @@ def test_a_replay_says_how_far_the_estimate_stood_from_the_fixes_and_what_it_ski
     skipped = [line.strip() for line in out if line.strip().startswith("skipped ")]
     assert len(skipped) == len(report["skipped"]) and report["skipped"], (out, report["skipped"])
     assert not any("_" in line for line in skipped), skipped          # words, not the report's keys
+
+
+def test_a_replay_lists_what_it_said_in_order(tmp_path, capsys):
+    """The summary lists each alarm (sensor, axis, offset, GNSS sample), clearance and WARNING by
+    the log's clock, as the core said them: a 10 m north step on a simulated drive, its alarm at the
+    report's sample; a longer list is cut at TIMELINE_LINES and says how many more the report holds."""
+    import dataclasses
+    import json
+    from guard.cli import TIMELINE_LINES, timeline
+    from guard_sim import scenario as scenarios
+    from guard_sim.run import run
+    from guard_sim.scenario import Attack
+    sc = dataclasses.replace(scenarios.load("clean"), duration_s=40.0,
+                             attacks=(Attack("step", "gnss_pos", "north", 10.0, 25.0),))
+    tlog = tmp_path / "north.tlog"
+    run(sc, 4, tlog=str(tlog))
+    assert main(["replay", str(tlog), "--report", str(tmp_path / "r.json")]) == 0
+    out = capsys.readouterr().out.splitlines()
+    report = json.loads((tmp_path / "r.json").read_text())
+    first = report["alarms"][0]
+    listed = [line for line in out if " s  ALARM " in line]
+    assert len(listed) == len(report["alarms"]) and f"(GNSS sample {first['gnss_index']}" in listed[0], out
+    assert "ALARM gnss_pos north +" in listed[0] and listed[0].strip().startswith(f"{first['time_usec'] / 1e6:.1f} s")
+    many = {**report, "alarms": [first] * (TIMELINE_LINES + 5)}
+    lines = timeline(many)
+    others = len(timeline(report)) - len(report["alarms"])         # its warnings and clearances
+    assert len(lines) == TIMELINE_LINES + 1 and lines[-1].startswith(f"... and {5 + others} more"), lines[-1]
