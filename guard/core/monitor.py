@@ -36,7 +36,8 @@ from guard.core.aiding.compass import NO_COMPASS_S, CompassWatch
 from guard.core.aiding.gnss import (HELD_COURSE_MAX_MPS, START_H_ACC_M, START_HDOP, FreezeWatch, GnssAiding,
                                     across_track, gnss_velocity_model)
 from guard.core.aiding.impact import BUDGET_S, HOLD_S, IMPACT_G, MEAN_S, WINDOW_S, Impact
-from guard.core.aiding.imu import Averager, ImuAiding, RateWatch, fuse_rows, heading, level, row_sensors
+from guard.core.aiding.imu import NOISE_CAP, Averager, ImuAiding, RateWatch, fuse_rows, heading, level, row_sensors
+from guard.core.aiding.noisecap import NoiseCap
 from guard.core.aiding.motors import MotorWatch, offset_q
 from guard.core.aiding.tilt import Tilt
 from guard.core.anchor import Learnt, diverged, initial_state
@@ -119,6 +120,7 @@ class Monitor:
         self.imu_rate = RateWatch(self.cfg.min_imu_hz)
         self.compass = CompassWatch()               # whether an air vehicle has a compass at all
         self.motors = MotorWatch()                  # the motors' start and stop, heard in the IMU
+        self.noise_cap = NoiseCap(NOISE_CAP)        # an IMU noisier than the tests take: said once per sensor
         self._last_mag: tuple[float, float] | None = None     # levelled (m_x, m_y) of the latest IMU sample
         self._learnt: Learnt | None = None          # what a restarted filter keeps of the vehicle (_reinitialise)
         self._fix: GnssFix | None = None            # the latest fix, and where it is in the local frame
@@ -492,6 +494,7 @@ class Monitor:
         aid, blocks, angle = self.imu_aid.measurement(self.ekf.x, theta, rate, ax, ay, self.ground, tilt,
                                                       tilt_rate, n)
         r, S, PHT = self.ekf.innovation(aid.z, aid.hx, aid.H, aid.R, angle_rows=angle)
+        events += self.noise_cap.step(s.t_us, self.imu_aid.noise.measured(n)[:3], self.imu_aid.floors[:3])
         if theta is not None:
             self.witnesses.add_heading(HeadingWitness(s.t_us, theta, rate))
         if self.ground:

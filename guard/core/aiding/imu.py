@@ -177,12 +177,16 @@ class ImuNoise:
     def sigmas(self, floors: tuple[float, float, float, float], n: int) -> list[float]:
         """The noise of a mean of n samples: each reading's (the larger memory's), within [floor,
         NOISE_CAP * floor]."""
+        return [min(max(f, r), NOISE_CAP * f) for f, r in zip(floors, self.measured(n))]
+
+    def measured(self, n: int) -> list[float]:
+        """The noise of a mean of n samples as measured (the larger memory's), neither floored nor capped."""
         out = []
-        for i, (f, v) in enumerate(zip(floors, self.var)):
+        for i, v in enumerate(self.var):
             short = self._short_median(i)
             if short is not None:
                 v = max(v, short)
-            out.append(min(max(f, math.sqrt(v / n)), NOISE_CAP * f))
+            out.append(math.sqrt(v / n))
         return out
 
 
