@@ -187,12 +187,6 @@ class Monitor:
                 events += self._reinitialise(sample.t_us, f"time jumped {(sample.t_us - base) / 1e6:+.1f} s",
                                              keep_learnt=True)
                 self.timebase.check(kind, sample.t_us, None)
-            elif gnss and self.t_us is not None and sample.t_us - self.t_us > self.cfg.max_gap_s * 1e6:
-                # a fix after a silence that nothing carried the estimate through (on GNSS alone, the IMU
-                # not integrated; or an IMU set aside): it starts a new filter, as after a reboot
-                events += self._reinitialise(sample.t_us, f"no GNSS fix for {(sample.t_us - self.t_us) / 1e6:.1f} s "
-                                             "and the IMU not integrated", keep_learnt=True)
-                self.timebase.check(kind, sample.t_us, None)
         if gnss:
             self.gnss_index += 1
             events += self._gnss(sample)

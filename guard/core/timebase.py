@@ -14,10 +14,7 @@ The base is the filter's time, or, while there is no filter (before the first fi
 restart until the next one), the latest sample taken of the same kind (a fix may be stamped at its
 time of validity, some hundreds of milliseconds behind the IMU's latest): a lone wild stamp before
 the first fix is dropped as one after it is (it had become every later sample's "last", and all of
-them were dropped as out of order). A sample is ahead of the base when it is more than `max_gap_s`
-beyond the latest sample taken of any kind, or the filter's time where that is later: a GNSS
-silence on a vehicle whose IMU is not integrated (too slow, or no compass) is a silence, not a jump
-of the clock.
+them were dropped as out of order).
 """
 
 from __future__ import annotations
@@ -45,12 +42,7 @@ class Timebase:
         self.heard.add(kind)
         if now_us is None:
             now_us = self.last.get(kind)
-        # ahead of the latest sample taken of any kind, which is on the base: an IMU that is not
-        # integrated (too slow, or no compass) leaves the filter's time at the last fix, and a GNSS
-        # silence longer than max_gap_s had every IMU sample in it, and then the next fix, taken for a
-        # time that jumped (the filter started again; the samples counted as stamped off the base)
-        if now_us is not None and (t_us < now_us - BACKWARD_US or
-                                   t_us > max(now_us, max(self.last.values(), default=now_us)) + self.max_gap_us):
+        if now_us is not None and (t_us < now_us - BACKWARD_US or t_us > now_us + self.max_gap_us):
             c = self.candidate
             if any(abs(t_us - t) > self.max_gap_us for t, _ in c.values()):
                 c.clear()                           # not the base the others moved to: start over

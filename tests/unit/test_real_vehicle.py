@@ -248,24 +248,6 @@ def test_a_reboot_on_gnss_alone_claims_nothing_learnt():
     assert mon.ekf.P[BM, BM] == 0.0 and mon.inertial is False
 
 
-def test_a_gnss_silence_on_gnss_alone_is_a_silence_not_a_jump_of_the_clock():
-    """An air vehicle without a compass is tested on its GNSS alone; its IMU, not integrated, still
-    keeps the clock. A GNSS silence of 15 s: the IMU's samples in it are on the clock (not counted as
-    stamped off it), and the next fix starts a new filter, said as what it was; a jump of every
-    stream (a reboot) is still one."""
-    samples = [s for s in drive(60.0, yaw=0.4, seed=18, mag=lambda t: False)
-               if not (isinstance(s, GnssFix) and T0_US + 30e6 <= s.t_us < T0_US + 45e6)]
-    mon, events = run(samples, AIR)
-    texts = [n.text for n in of(events, Notice)]
-    assert mon.inertial is False and not mon.skipped["time_off_base"], mon.skipped
-    said = [t for t in texts if "re-initialised" in t]
-    assert len(said) == 1 and said[0].startswith("no GNSS fix for 15.2 s and the IMU not integrated"), texts
-    assert not of(events, Alarm)
-    jumped = samples + [dataclasses.replace(s, t_us=s.t_us + 100_000_000) for s in drive(20.0, seed=19, mag=lambda t: False)]
-    texts = [n.text for n in of(run(jumped, AIR)[1], Notice)]
-    assert any(t.startswith("time jumped +") for t in texts), texts
-
-
 def test_a_diverged_filter_keeps_nothing():
     """Re-initialised because it diverged, the filter starts from the config's offset, not the one it
     had: what it learnt may be what went wrong."""
