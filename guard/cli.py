@@ -27,8 +27,10 @@ def _replay(args) -> int:
         cfg = replace(cfg, monitor=replace(cfg.monitor, detector=replace(cfg.monitor.detector, name=args.detector)))
     cfg = _with_system_id(cfg, args.system_id)
     from guard.runtime.deviation import Headings, compass_fits, said
+    from guard.sinks.timeline import Timeline
     headings = Headings(cfg=cfg.monitor)    # the compass against the gyro over the whole log
-    listeners = [headings]
+    timeline = Timeline()                   # what the core said, in order
+    listeners = [headings, timeline]
     trace = Trace() if args.plot else None
     if trace:
         listeners.append(trace)
@@ -67,7 +69,7 @@ def _replay(args) -> int:
         if gap["fixes"]:
             print(f"  the estimate from the fixes: {gap['mean']:.1f} m on average, {gap['max']:.1f} m at most, "
                   f"more than {FixGap.FAR_M:g} m at {100 * gap[f'share_over_{FixGap.FAR_M:g}']:.1f} % of them")
-        for line in timeline(report):
+        for line in timeline.said():
             print(f"  {line}")
         for note in report["notes"]:
             print(f"  {note}")
@@ -76,27 +78,6 @@ def _replay(args) -> int:
         for reason, n in sorted(report["skipped"].items(), key=lambda kv: -kv[1]):
             print(f"  skipped {n} {SKIPPED.get(reason, reason.replace('_', ' '))}")
     return 0
-
-
-TIMELINE_LINES = 20       # guard replay lists at most this many alarms, clearances and warnings
-
-
-def timeline(report: dict) -> list[str]:
-    """What the replay's core said, in the order it said it: each alarm (its sensor, axis, offset and
-    GNSS sample, as the daemon says it), each clearance and each WARNING, by the log's own clock; at
-    most TIMELINE_LINES of them, then how many more the report holds."""
-    from guard.model.sensors import UNITS
-    said = [(a["time_usec"], f"ALARM {'|'.join((a['sensor'], *a['ambiguous_with']))} {a['channel']} "
-             f"{a['offset']:+.3g} {UNITS[a['sensor']]} (GNSS sample {a['gnss_index']}"
-             f"{': its alarm stands, again' if a['standing'] else ''})") for a in report["alarms"]]
-    said += [(n["time_usec"], f"WARNING {n['text']}") for n in report["notices"] if n["level"] == "warning"]
-    said += [(c["time_usec"], f"clear {c['sensor']} {c['channel']} (GNSS sample {c['gnss_index']})")
-             for c in report["cleared"]]
-    said.sort(key=lambda ts: ts[0])             # at one time: alarms, warnings, clearances, as the core says them
-    lines = [f"{t / 1e6:9.1f} s  {text}" for t, text in said[:TIMELINE_LINES]]
-    if len(said) > TIMELINE_LINES:
-        lines.append(f"... and {len(said) - TIMELINE_LINES} more alarms, clearances and warnings (--report has them all)")
-    return lines
 
 
 def _run(args) -> int:

@@ -283,7 +283,9 @@ class Monitor:
             self.skipped["gnss_no_fix"] += 1
             if not self.gnss_lost:
                 self.gnss_lost = True
-                events.append(Notice(fix.t_us, "warning", "GNSS fix lost: coasting on the IMU" if self.ekf
+                lost = "GNSS fix lost: coasting on the IMU" if self.inertial else \
+                    "GNSS fix lost: nothing holds the estimate (on GNSS alone, the IMU not integrated)"
+                events.append(Notice(fix.t_us, "warning", lost if self.ekf
                                      else "GNSS without a fix: monitoring starts at the first fix"))
             return events
         if self.gnss_lost:

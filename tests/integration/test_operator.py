@@ -225,11 +225,14 @@ def test_a_replay_says_how_far_the_estimate_stood_from_the_fixes_and_what_it_ski
 
 def test_a_replay_lists_what_it_said_in_order(tmp_path, capsys):
     """The summary lists each alarm (sensor, axis, offset, GNSS sample), clearance and WARNING by
-    the log's clock, as the core said them: a 10 m north step on a simulated drive, its alarm at the
-    report's sample; a longer list is cut at TIMELINE_LINES and says how many more the report holds."""
+    the log's clock, in the order the core said them: a 10 m north step on a simulated drive, its
+    alarm at the report's sample; past LINES, how many more. A reboot's time goes back: the order is
+    still the core's."""
     import dataclasses
     import json
-    from guard.cli import TIMELINE_LINES, timeline
+    from guard.model.events import Alarm, Notice
+    from guard.model.sensors import Sensor
+    from guard.sinks.timeline import LINES, Timeline
     from guard_sim import scenario as scenarios
     from guard_sim.run import run
     from guard_sim.scenario import Attack
@@ -244,7 +247,10 @@ def test_a_replay_lists_what_it_said_in_order(tmp_path, capsys):
     listed = [line for line in out if " s  ALARM " in line]
     assert len(listed) == len(report["alarms"]) and f"(GNSS sample {first['gnss_index']}" in listed[0], out
     assert "ALARM gnss_pos north +" in listed[0] and listed[0].strip().startswith(f"{first['time_usec'] / 1e6:.1f} s")
-    many = {**report, "alarms": [first] * (TIMELINE_LINES + 5)}
-    lines = timeline(many)
-    others = len(timeline(report)) - len(report["alarms"])         # its warnings and clearances
-    assert len(lines) == TIMELINE_LINES + 1 and lines[-1].startswith(f"... and {5 + others} more"), lines[-1]
+    alarm = Alarm(100_000_000, 1000, Sensor.GNSS_POS, "north", 30.0, 20.0, 10.0, "cusum")
+    t = Timeline()
+    t.on_events([alarm, Notice(2_000_000, "warning", "time jumped -98.0 s: filter re-initialised")])
+    t.on_events([alarm] * LINES)
+    lines = t.said()
+    assert "ALARM gnss_pos north +10 m (GNSS sample 1000)" in lines[0] and "time jumped" in lines[1], lines
+    assert len(lines) == LINES + 1 and lines[-1].startswith("... and 2 more"), lines[-1]

@@ -407,6 +407,15 @@ def test_core_gnss_north_jump_alarms_excludes_and_clears():
         assert est.east_m == pytest.approx(5.0 * t, abs=0.7), t
 
 
+def test_core_gnss_fix_lost_on_gnss_alone_is_not_said_to_coast_on_the_imu():
+    """An air vehicle without a compass is tested on its GNSS alone: its IMU holds nothing when the fix goes."""
+    samples = drive(60.0, seed=3, mag=lambda t: False, fix_ok=lambda t: not 30.0 <= t < 33.0)
+    mon, events = run(samples, MonitorConfig(declination_deg=0.0, vehicle="air"))
+    lost = [n.text for n in of(events, Notice) if n.text.startswith("GNSS fix lost")]
+    assert mon.inertial is False and lost == ["GNSS fix lost: nothing holds the estimate (on GNSS alone, the IMU "
+                                              "not integrated)"], lost
+
+
 def test_core_gnss_fix_lost_once():
     lost = lambda t: 30.0 <= t < 33.0                          # noqa: E731
     samples = drive(60.0, seed=3, fix_ok=lambda t: not lost(t))

@@ -30,6 +30,8 @@ def test_accelerometers_vibrating_past_the_cap_are_said_once_with_the_factor(see
 
 
 def test_a_jolt_shorter_than_the_time_it_takes_is_not_said():
+    """SAY_S is counted in all over the run, fusion by fusion: a gap is not time over it, nor is another
+    sensor's; what was counted before the gap is kept."""
     cap = NoiseCap(NOISE_CAP)
     floors = (0.15, 0.15, 0.01)
     t, out = 0, []
