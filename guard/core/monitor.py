@@ -179,7 +179,15 @@ class Monitor:
         gnss = isinstance(sample, GnssFix)
         if not (gnss and not sample.fix_ok):        # a no-fix message's time means nothing
             kind = "gnss" if gnss else "imu"
-            verdict = self.timebase.check(kind, sample.t_us, self.t_us)
+            alone = self.inertial is False and self.t_us is not None        # on GNSS alone: the IMU keeps the clock
+            if gnss and alone and sample.t_us - self.t_us > self.cfg.max_gap_s * 1e6 and \
+                    self.timebase.on_imu_clock(sample.t_us):
+                # a fix after a silence nothing carried the estimate through: a new filter starts on it
+                events += self._reinitialise(sample.t_us, f"no GNSS fix for {(sample.t_us - self.t_us) / 1e6:.1f} s "
+                                             "on GNSS alone", keep_learnt=True)
+                verdict = self.timebase.check(kind, sample.t_us, None)
+            else:
+                verdict = self.timebase.check(kind, sample.t_us, self.t_us, own_clock=alone and not gnss)
             if verdict == "drop":                   # not a sample of the stream: not counted in k either
                 return events
             if verdict == "rebase":

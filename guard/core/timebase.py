@@ -15,6 +15,14 @@ restart until the next one), the latest sample taken of the same kind (a fix may
 time of validity, some hundreds of milliseconds behind the IMU's latest): a lone wild stamp before
 the first fix is dropped as one after it is (it had become every later sample's "last", and all of
 them were dropped as out of order).
+
+On GNSS alone (an IMU too slow to integrate, or no compass) the filter's time moves with the fixes
+only; the IMU, not integrated, keeps the clock through a GNSS silence by its own continuity (each
+sample within OWN_STEP_US of its last), and a fix that comes more than `max_gap_s` after the last one,
+where the IMU's latest sample is (within CONFIRM_US), ends a silence: the monitor starts a new filter
+on it and says so. A lone fix stamped far ahead of both is still a wild stamp, dropped. Forged IMU
+frames each within OWN_STEP_US of the last can walk that clock, as a forged fix and IMU sample
+agreeing on a new base can re-initialise guard at any time (a reboot's rule): one frame cannot.
 """
 
 from __future__ import annotations
@@ -22,6 +30,8 @@ from __future__ import annotations
 from collections import Counter
 
 BACKWARD_US = 200_000       # a stream this far behind the filter is off its base (a reboot, a wild stamp)
+OWN_STEP_US = 3_000_000     # an IMU the filter does not follow keeps its own clock: its next sample this soon
+CONFIRM_US = 1_000_000      # a fix this close to the IMU's latest sample is on the clock the IMU kept
 
 
 class Timebase:
@@ -36,13 +46,17 @@ class Timebase:
         self.last.clear()
         self.candidate.clear()
 
-    def check(self, kind: str, t_us: int, now_us: int | None) -> str:
+    def check(self, kind: str, t_us: int, now_us: int | None, own_clock: bool = False) -> str:
         """"take", "drop", or "rebase" (a new time base confirmed: start again on it). `now_us`: the
-        filter's time (None without a filter: the latest sample of this kind taken is the base)."""
+        filter's time (None without a filter: the latest sample of this kind taken is the base).
+        `own_clock`: a stream the filter does not follow (an IMU not integrated, on GNSS alone), whose
+        sample within OWN_STEP_US after its last is on the base however far the filter's time lags."""
         self.heard.add(kind)
         if now_us is None:
             now_us = self.last.get(kind)
-        if now_us is not None and (t_us < now_us - BACKWARD_US or t_us > now_us + self.max_gap_us):
+        last = self.last.get(kind)
+        goes_on = own_clock and last is not None and 0 < t_us - last <= OWN_STEP_US
+        if now_us is not None and not goes_on and (t_us < now_us - BACKWARD_US or t_us > now_us + self.max_gap_us):
             c = self.candidate
             if any(abs(t_us - t) > self.max_gap_us for t, _ in c.values()):
                 c.clear()                           # not the base the others moved to: start over
@@ -53,9 +67,14 @@ class Timebase:
             self.skipped["time_off_base"] += 1
             return "drop"
         self.candidate.clear()                      # back on the base: what was held was a wild stamp
-        last = self.last.get(kind)
         if last is not None and t_us <= last:
             self.skipped[f"{kind}_out_of_order" if t_us < last else f"{kind}_resent"] += 1
             return "drop"
         self.last[kind] = t_us
         return "take"
+
+    def on_imu_clock(self, t_us: int) -> bool:
+        """Whether a sample at t_us is where the IMU's latest sample taken is (within CONFIRM_US): a fix
+        after a GNSS silence on GNSS alone, the IMU having kept the clock, and not a lone wild stamp."""
+        imu = self.last.get("imu")
+        return imu is not None and abs(t_us - imu) <= CONFIRM_US

@@ -169,6 +169,20 @@ def shifted(samples, dt_us: int):
             for s in samples]
 
 
+def test_a_fix_after_hours_of_an_imu_not_integrated_starts_a_new_filter():
+    """An IMU too slow to integrate, its samples 9 s apart, for five hours without a fix, then one:
+    a new filter starts on it (a version that let the IMU keep the clock by any step predicted the
+    filter across the hours in 0.1 s steps, a hang the fuzzer found)."""
+    first = next(i for i, s in enumerate(DRIVE) if isinstance(s, GnssFix))
+    imu = next(s for s in DRIVE if isinstance(s, ImuSample))
+    slow = [type(imu)(DRIVE[first].t_us + k * 9_000_000, *[getattr(imu, f) for f in imu.__slots__[1:]])
+            for k in range(1, 2000)]
+    last = shifted([DRIVE[first]], slow[-1].t_us + 100_000 - DRIVE[first].t_us)
+    events = run(DRIVE[:first + 1] + slow + last)
+    said = [e.text for e in events if isinstance(e, Notice) and "re-initialised" in e.text]
+    assert said and float(said[-1].split(" s")[0].split()[-1].lstrip("+")) > 17_000, said
+
+
 def test_monitor_through_a_reboot_after_three_days_up():
     """The drive at 72 h after boot, then again 6 s after a reboot: a new time base, not an OverflowError."""
     events = run(shifted(DRIVE, 72 * 3_600_000_000) + shifted(DRIVE[1:], 1_000_000) + shifted(DRIVE[1:], 2_000_000))

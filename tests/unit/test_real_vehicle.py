@@ -248,6 +248,45 @@ def test_a_reboot_on_gnss_alone_claims_nothing_learnt():
     assert mon.ekf.P[BM, BM] == 0.0 and mon.inertial is False
 
 
+def gnss_alone(duration_s: float, seed: int, silence=None):
+    """An air vehicle without a compass (tested on its GNSS alone), its fixes gone within `silence` (s)."""
+    return [s for s in drive(duration_s, yaw=0.4, seed=seed, mag=lambda t: False)
+            if not (silence and isinstance(s, GnssFix) and T0_US + silence[0] * 1e6 <= s.t_us < T0_US + silence[1] * 1e6)]
+
+
+def test_a_gnss_silence_on_gnss_alone_is_a_silence_not_a_jump_of_the_clock():
+    """On GNSS alone the IMU, not integrated, still keeps the clock. A GNSS silence of 15 s: the IMU's
+    samples in it are on the clock (not counted as stamped off it), and the next fix starts a new
+    filter, said as what it was; a jump of every stream (a reboot) is still one."""
+    samples = gnss_alone(60.0, 18, silence=(30.0, 45.0))
+    mon, events = run(samples, AIR)
+    texts = [n.text for n in of(events, Notice)]
+    assert mon.inertial is False and not mon.skipped["time_off_base"], mon.skipped
+    said = [t for t in texts if "re-initialised" in t]
+    assert len(said) == 1 and said[0].startswith("no GNSS fix for 15.2 s on GNSS alone"), texts
+    assert not of(events, Alarm)
+    jumped = samples + [dataclasses.replace(s, t_us=s.t_us + 100_000_000) for s in gnss_alone(20.0, 19)]
+    texts = [n.text for n in of(run(jumped, AIR)[1], Notice)]
+    assert any(t.startswith("time jumped +") for t in texts), texts
+
+
+def test_one_forged_frame_on_gnss_alone_neither_starts_a_new_filter_nor_walks_the_clock():
+    """A fix stamped just past max_gap_s after the last one, while the fixes go on, is a lone wild
+    stamp: dropped and counted, no new filter. IMU frames forged 9 s apart walk the clock no
+    further than the old rule let one frame: the IMU's own samples after them are taken again
+    within 10 s."""
+    samples = gnss_alone(60.0, 18)
+    k = next(i for i, s in enumerate(samples) if isinstance(s, GnssFix) and s.t_us >= T0_US + 40e6)
+    forged = dataclasses.replace(samples[k], t_us=samples[k].t_us + 10_100_000)
+    mon, events = run(samples[:k + 1] + [forged] + samples[k + 1:], AIR)
+    assert mon.skipped["time_off_base"] == 1, mon.skipped
+    assert not [n for n in of(events, Notice) if "re-initialised" in n.text]
+    imu = next(s for s in samples[k:] if not isinstance(s, GnssFix))
+    walk = [dataclasses.replace(imu, t_us=imu.t_us + j * 9_000_000) for j in range(1, 40)]
+    mon, events = run(samples[:k + 1] + walk + samples[k + 1:], AIR)
+    assert mon.skipped["imu_out_of_order"] < 600 and not [n for n in of(events, Notice) if "re-initialised" in n.text]
+
+
 def test_a_diverged_filter_keeps_nothing():
     """Re-initialised because it diverged, the filter starts from the config's offset, not the one it
     had: what it learnt may be what went wrong."""
