@@ -49,14 +49,16 @@ class Timebase:
     def check(self, kind: str, t_us: int, now_us: int | None, own_clock: bool = False) -> str:
         """"take", "drop", or "rebase" (a new time base confirmed: start again on it). `now_us`: the
         filter's time (None without a filter: the latest sample of this kind taken is the base).
-        `own_clock`: a stream the filter does not follow (an IMU not integrated, on GNSS alone), whose
-        sample within OWN_STEP_US after its last is on the base however far the filter's time lags."""
+        `own_clock`: on GNSS alone, where the filter does not follow the IMU, an IMU sample within
+        OWN_STEP_US after its last is on the base however far ahead of the filter's time (never one
+        behind it: a fix forged ahead, within max_gap_s, moves the filter's time on, and the genuine
+        streams held behind it confirm the base they are on, as before)."""
         self.heard.add(kind)
         if now_us is None:
             now_us = self.last.get(kind)
         last = self.last.get(kind)
-        goes_on = own_clock and last is not None and 0 < t_us - last <= OWN_STEP_US
-        if now_us is not None and not goes_on and (t_us < now_us - BACKWARD_US or t_us > now_us + self.max_gap_us):
+        goes_on = own_clock and kind == "imu" and last is not None and 0 < t_us - last <= OWN_STEP_US
+        if now_us is not None and (t_us < now_us - BACKWARD_US or (t_us > now_us + self.max_gap_us and not goes_on)):
             c = self.candidate
             if any(abs(t_us - t) > self.max_gap_us for t, _ in c.values()):
                 c.clear()                           # not the base the others moved to: start over
