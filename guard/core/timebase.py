@@ -21,8 +21,8 @@ only; the IMU, not integrated, keeps the clock through a GNSS silence by its own
 sample within OWN_STEP_US of its last), and a fix that comes more than `max_gap_s` after the last one,
 where the IMU's latest sample is (within CONFIRM_US), ends a silence: the monitor starts a new filter
 on it and says so. A lone fix stamped far ahead of both is still a wild stamp, dropped. Forged IMU
-frames each within OWN_STEP_US of the last can walk that clock, as a forged fix and IMU sample
-agreeing on a new base can re-initialise guard at any time (a reboot's rule): one frame cannot.
+frames each within OWN_STEP_US of the last can walk that clock (one frame cannot), as a forged fix
+and IMU sample agreeing on a new base can re-initialise guard at any time (a reboot's rule).
 """
 
 from __future__ import annotations
