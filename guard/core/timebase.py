@@ -1,12 +1,16 @@
 """Whose clock a sample is on: the stream's own time base, a reboot's new one, or a lone wild stamp.
 
 The core's time is the samples' own (`t_us`, the autopilot's boot time). A sample off the current
-base (behind it by more than BACKWARD_US, or ahead by more than `max_gap_s`) is held, not taken:
+base (behind it by more than BACKWARD_US, a fix by more than LATE_FIX_US, as a receiver stamps a fix
+at its time of validity and sends it a latency later; or ahead by more than `max_gap_s`) is held, not
+taken:
 - an autopilot reboot, or a link back after a long outage, moves every stream: the new base is
   confirmed when a GNSS fix and an IMU sample (each kind that has been heard) agree on it, within
   `max_gap_s` of each other; the filter then starts again on it;
-- a lone frame with a wild time stamp (a glitch, or a forged frame) is dropped and counted: one
-  frame cannot re-initialise guard.
+- a lone frame with a wild time stamp (a glitch, or a forged frame) is dropped and counted. One
+  stamped ahead within `max_gap_s` is on the base and is taken: it moves the filter's time on, the
+  genuine streams held behind it then agree on theirs, and guard starts again there (a forged frame
+  can do that much, and no more: a GNSS alarm stands through it).
 A sample on the base but older than the last of its own stream (out of order, or the same again) is
 dropped and counted too: the filter never runs backwards.
 
@@ -30,6 +34,7 @@ from __future__ import annotations
 from collections import Counter
 
 BACKWARD_US = 200_000       # a stream this far behind the filter is off its base (a reboot, a wild stamp)
+LATE_FIX_US = 1_000_000     # ... but a fix, stamped at its time of validity, may come this late (its latency)
 OWN_STEP_US = 3_000_000     # an IMU the filter does not follow keeps its own clock: its next sample this soon
 CONFIRM_US = 1_000_000      # a fix this close to the IMU's latest sample is on the clock the IMU kept
 
@@ -58,7 +63,8 @@ class Timebase:
             now_us = self.last.get(kind)
         last = self.last.get(kind)
         goes_on = own_clock and kind == "imu" and last is not None and 0 < t_us - last <= OWN_STEP_US
-        if now_us is not None and (t_us < now_us - BACKWARD_US or (t_us > now_us + self.max_gap_us and not goes_on)):
+        back_us = LATE_FIX_US if kind == "gnss" else BACKWARD_US
+        if now_us is not None and (t_us < now_us - back_us or (t_us > now_us + self.max_gap_us and not goes_on)):
             c = self.candidate
             if any(abs(t_us - t) > self.max_gap_us for t, _ in c.values()):
                 c.clear()                           # not the base the others moved to: start over

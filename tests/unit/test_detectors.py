@@ -555,6 +555,20 @@ def test_core_a_fix_stamped_before_the_last_imu_sample_is_rewound_exactly():
     assert abs(mon.ekf.x[0] - before[0]) < 0.1 and abs(mon.ekf.x[1] - before[1]) < 0.1, mon.ekf.x[:2] - before[:2]
 
 
+@pytest.mark.parametrize("lag_us", [300_000, 600_000])
+def test_core_fixes_that_come_late_are_monitored_and_a_step_in_them_caught(lag_us):
+    """A receiver whose fixes, stamped at their time of validity, come 0.3 or 0.6 s after it (after
+    IMU samples that much newer): every fix is taken (they had all been dropped as off the time base,
+    over 0.2 s behind the filter, and nothing was monitored), the clean drive raises nothing, and a
+    10 m step in them is caught within a second."""
+    clean = drive(60.0, seed=4, gnss_lag_us=lag_us)
+    mon, events = run(clean)
+    assert not mon.skipped["time_off_base"] and mon.gnss_index >= 295 and not of(events, Alarm), mon.skipped
+    stepped = drive(60.0, seed=4, gnss_lag_us=lag_us, gnss_offset=lambda t: (0.0, 10.0) if t >= 40.0 else (0.0, 0.0))
+    alarms = [(a.sensor, (a.t_us - T0_US) / 1e6) for a in of(run(stepped)[1], Alarm)]
+    assert alarms and alarms[0][0] == "gnss_pos" and 40.0 <= alarms[0][1] <= 41.0, alarms
+
+
 @pytest.mark.parametrize("how", ["velocity not fused", "fixes without velocity"])
 def test_core_a_position_alarm_clears_without_a_gnss_velocity(how):
     """One receiver's alarm excludes position and velocity, and the position waits for its velocity
