@@ -51,13 +51,14 @@ from guard.core.history import REWIND_S, History, state_minus
 from guard.core.isolation import HeadingWitness, Witnesses
 from guard.core.judge import Judge
 from guard.core.longrun import LongRun
-from guard.core.timebase import Timebase
+from guard.core.timebase import SOLE_SPAN_US, Timebase
 from guard.model.events import Estimate, Event, Notice
 from guard.model.samples import Attitude, GnssFix, ImuSample, VehicleType
 from guard.model.sensors import CHANNELS, RECEIVER, Sensor
 
 MAX_FIX_INTERVAL_S = 2.0   # s: fixes further apart say nothing of the acceleration between them (a gap)
 KIND_WAIT_S = 10.0     # s of monitoring without the vehicle's type (a HEARTBEAT comes every second): not sent
+SOLE_SAID = {"gnss": "GNSS fixes", "imu": "IMU samples"}
 CAP_FIXES = 5          # fixes in a row whose receiver calls itself worse than guard takes: then said
 
 
@@ -192,8 +193,11 @@ class Monitor:
                 return events
             if verdict == "rebase":
                 base = self.t_us if self.t_us is not None else self.timebase.last[kind]   # no filter yet
-                events += self._reinitialise(sample.t_us, f"time jumped {(sample.t_us - base) / 1e6:+.1f} s",
-                                             keep_learnt=True)
+                sole = self.timebase.sole
+                why = f"time jumped {(sample.t_us - base) / 1e6:+.1f} s" if sole is None else (
+                    f"time jumped {(sole[1] - base) / 1e6:+.1f} s by the {SOLE_SAID[sole[0]]} alone, the other "
+                    f"stream silent over {SOLE_SPAN_US / 1e6:g} s of them")
+                events += self._reinitialise(sample.t_us, why, keep_learnt=True)
                 self.timebase.check(kind, sample.t_us, None)
         if gnss:
             self.gnss_index += 1

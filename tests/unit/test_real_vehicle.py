@@ -293,6 +293,33 @@ def test_one_forged_frame_on_gnss_alone_neither_starts_a_new_filter_nor_walks_th
     assert mon.skipped["imu_out_of_order"] < 600 and not [n for n in of(events, Notice) if "re-initialised" in n.text]
 
 
+@pytest.mark.parametrize("cfg", [GROUND, AIR], ids=["inertial", "gnss-alone"])
+@pytest.mark.parametrize("seed", [3, 21])
+def test_an_imu_stream_that_stops_then_a_gnss_silence_holds_no_fix_for_good(cfg, seed):
+    """The IMU's stream stops at 40 s (a stream rate set to 0, a sensor gone) and then the GNSS is
+    silent for 15 s: the fixes after it, far ahead of the filter's time, once waited for an IMU
+    sample to confirm their base, and none came: nothing was monitored again. Now 3 s of fixes
+    alone confirm it, said, and they are monitored, quiet. With the IMU alive, its samples keep the
+    base: fixes forged 20 s ahead for 5 s are dropped, no new filter."""
+    samples = drive(120.0, yaw=0.4, seed=seed, mag=(lambda t: False) if cfg is AIR else (lambda t: True))
+    live = [s for s in samples if isinstance(s, GnssFix) or s.t_us < T0_US + 40e6]
+    samples = [s for s in live if not (isinstance(s, GnssFix) and T0_US + 40e6 <= s.t_us < T0_US + 55e6)]
+    mon, events = run(samples, cfg)
+    said = [n.text for n in of(events, Notice) if "re-initialised" in n.text]
+    assert len(said) == 1 and said[0].startswith("time jumped +15.") and "GNSS fixes alone" in said[0], said
+    assert 14 <= mon.skipped["time_off_base"] <= 16, mon.skipped           # 3 s of fixes at 5 Hz
+    assert min(e.t_us for e in of(events, Estimate) if e.t_us > T0_US + 40e6) <= T0_US + 58.5e6
+    assert not of(events, Alarm)
+    fixes = run(samples := drive(60.0, yaw=0.4, seed=seed), cfg)[0].gnss_index
+    k = next(i for i, s in enumerate(samples) if s.t_us >= T0_US + 30e6)
+    forged = [dataclasses.replace(s, t_us=s.t_us + 20_000_000) for s in samples[k:] if isinstance(s, GnssFix)
+              and s.t_us < T0_US + 35e6]
+    mixed = sorted(samples + forged, key=lambda s: s.t_us - (20_000_000 if s in forged else 0))
+    mon, events = run(mixed, cfg)
+    assert mon.gnss_index == fixes and mon.skipped["time_off_base"] == len(forged) == 25, mon.skipped
+    assert not [n for n in of(events, Notice) if "re-initialised" in n.text]
+
+
 def test_a_diverged_filter_keeps_nothing():
     """Re-initialised because it diverged, the filter starts from the config's offset, not the one it
     had: what it learnt may be what went wrong."""
