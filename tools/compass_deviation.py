@@ -8,6 +8,11 @@ about the fit with it and without it, and how much of the circle the headings re
 turns do not show it says so; a log without a magnetometer, an IMU fast enough to integrate, or one
 that cannot be read, is named and skipped.
 
+Where the iron is shown, the log is replayed again with it taken out of every magnetometer reading
+from the first (`iron_out`: each reading turned about the vertical by the deviation the iron makes
+at its heading), and its new alarms by sensor are shown both ways: what learning the iron could buy
+at most, as no filter could know it before the turns showed it.
+
 The motors' field. The motors' and the battery's current is a field in the body too, and it grows
 with the current: ArduPilot's compassmot calibration measures it per ampere or per unit of throttle.
 Where the log says a multicopter's throttle u (0 to 1: ArduCopter's CTUN.ThO, older logs' ThrOut
@@ -28,14 +33,18 @@ calibration would take out much of the compass's error in flight, the two scatte
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import sys
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from guard.errors import GuardError                  # noqa: E402
+from guard.core.aiding.tilt import Tilt             # noqa: E402
+from guard.model.samples import Attitude, ImuSample  # noqa: E402
 from guard.runtime.deviation import MAX_SIGMA, Headings, deviations, fit, iron_of, wrap   # noqa: E402
 from guard.runtime.replay import replay              # noqa: E402
 from guard.sources.dataflash.index import MAX_BOOT_US, Log, looks_like_dataflash, open_index   # noqa: E402
@@ -146,6 +155,40 @@ def turned_by(d: np.ndarray, spread: float) -> float:
     return math.degrees(float(np.max(np.abs(wrap(hi - lo)))))
 
 
+def iron_out(dx: float, dy: float):
+    """An `inject` for replay: each magnetometer reading turned about the vertical by the deviation
+    the iron d makes at its heading, so that guard levels it to what it would read without the iron
+    (the heading read chi_m back to chi: chi_m = atan2(sin chi - d_y, cos chi + d_x), solved for chi
+    along the ray chi_m). It is levelled with the autopilot's attitude, as guard levels it
+    (guard.core.aiding.imu.level), and turned back to the body: its vertical part is untouched."""
+    def inject(samples):
+        tilt = Tilt()
+        for s in samples:
+            if isinstance(s, Attitude):
+                tilt.set(s)
+            elif isinstance(s, ImuSample) and s.mag_x_gauss is not None:
+                phi, p = tilt.at(s)
+                cr, sr, cp, sp = math.cos(phi), math.sin(phi), math.cos(p), math.sin(p)
+                L = np.array([[cp, sp * sr, sp * cr], [0.0, cr, -sr], [-sp, cp * sr, cp * cr]])
+                m = L @ np.array([s.mag_x_gauss, s.mag_y_gauss, s.mag_z_gauss])
+                chi_m = math.atan2(-m[1], m[0])
+                ux, uy = math.cos(chi_m), math.sin(chi_m)
+                along = ux * dx - uy * dy
+                reach = along + math.sqrt(max(along * along - dx * dx - dy * dy + 1.0, 0.0))
+                turn = math.atan2(reach * uy + dy, reach * ux - dx) - chi_m
+                c, n = math.cos(turn), math.sin(turn)
+                m[0], m[1] = c * m[0] + n * m[1], -n * m[0] + c * m[1]
+                b = L.T @ m
+                s = dataclasses.replace(s, mag_x_gauss=float(b[0]), mag_y_gauss=float(b[1]), mag_z_gauss=float(b[2]))
+            yield s
+    return inject
+
+
+def alarms_by_sensor(report: dict) -> dict[str, int]:
+    """A report's new alarms (not a standing one going on) by sensor."""
+    return dict(Counter(a["sensor"] for a in report.get("alarms", []) if not a.get("standing")))
+
+
 def deviation_of(path: str) -> dict:
     """One log's fit, as a JSON-ready dict (an "error" where it has none)."""
     h = Headings()
@@ -164,7 +207,10 @@ def deviation_of(path: str) -> dict:
     except GuardError as e:                 # the iron is still shown
         throttle, why = None, f"its throttle could not be read: {e}"
     mot = motors(a, throttle, report.get("clock")) if throttle is not None else {"why": why}
-    return {"log": path, **iron, "motors": mot}
+    # what learning the iron could buy at most: the same log with the whole log's iron out of every
+    # reading from its first (a filter that learnt it would know it only after the turns showed it)
+    out = alarms_by_sensor(replay(path, inject=iron_out(iron["dx"], iron["dy"]))) if iron["shown"] else None
+    return {"log": path, **iron, "motors": mot, "alarms": alarms_by_sensor(report), "alarms_iron_out": out}
 
 
 def show(r: dict) -> None:
@@ -181,6 +227,9 @@ def show(r: dict) -> None:
           f"horizontal field (+-{r['sigma']:.3f}); the compass against the gyro "
           f"{r['scatter_deg']:.1f} degrees with it, {r['scatter_without_deg']:.1f} without; "
           f"headings over {r['covered_deg']:.0f} degrees")
+    if r.get("alarms_iron_out") is not None:
+        print(f"  with that iron out of its readings from the first: alarms {said_alarms(r['alarms'])} -> "
+              f"{said_alarms(r['alarms_iron_out'])}")
     m = r["motors"]
     if "why" in m:
         print(f"  the motors' field: not fitted: {m['why']}")
@@ -193,6 +242,10 @@ def show(r: dict) -> None:
           f"{m['scatter_deg']:.1f} degrees with it, {m['scatter_iron_only_deg']:.1f} with the iron alone")
 
 
+def said_alarms(by_sensor: dict[str, int]) -> str:
+    return ", ".join(f"{k} {v}" for k, v in sorted(by_sensor.items())) or "none"
+
+
 def main(argv=None) -> int:
     results = each_log(__doc__, deviation_of, show, argv)
     if isinstance(results, int):
@@ -202,6 +255,12 @@ def main(argv=None) -> int:
         devs = sorted(r["max_deviation_deg"] for r in shown)
         print(f"{len(results)} logs: the iron shown in {len(shown)}, its deviation {devs[0]:.0f} to "
               f"{devs[-1]:.0f} degrees")
+        before, after = Counter(), Counter()
+        for r in shown:
+            before.update(r["alarms"])
+            after.update(r["alarms_iron_out"])
+        print(f"  their new alarms {said_alarms(before)}; with each log's iron out of its readings from the "
+              f"first {said_alarms(after)}")
     else:
         print(f"{len(results)} logs: the iron shown in none")
     return 0

@@ -35,7 +35,16 @@ def test_a_simulated_hard_iron_is_recovered_and_none_where_there_is_none(tmp_pat
     assert found["shown"] and abs(found["dx"] - iron[0]) < 0.02 and abs(found["dy"] - iron[1]) < 0.02, found
     assert found["scatter_deg"] < found["scatter_without_deg"] / 3
     assert clean["shown"] and abs(clean["dx"]) < 0.02 and abs(clean["dy"]) < 0.02, clean
-    assert "iron.tlog: up to " in got.stdout and got.stdout.splitlines()[-1].startswith("2 logs: the iron shown in 2")
+    assert "iron.tlog: up to " in got.stdout and got.stdout.splitlines()[-2].startswith("2 logs: the iron shown in 2")
+    assert found["alarms_iron_out"] is not None and "with that iron out of its readings" in got.stdout
+    assert got.stdout.splitlines()[-1].startswith("  their new alarms ")
+    # the iron taken out of every reading, turned about the vertical: the fit then finds none
+    cd = deviation_module()
+    h = cd.Headings()
+    replay(str(tmp_path / "iron.tlog"), listeners=[h], inject=cd.iron_out(*iron))
+    out = cd.iron_of(h)
+    assert out["shown"] and abs(out["dx"]) < 0.02 and abs(out["dy"]) < 0.02, out
+    assert out["scatter_deg"] < found["scatter_without_deg"] / 3
 
 
 def test_ardupilots_sitl_flights_a_straight_line_shows_nothing(shared):
