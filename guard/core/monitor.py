@@ -59,6 +59,7 @@ from guard.model.sensors import CHANNELS, RECEIVER, Sensor
 MAX_FIX_INTERVAL_S = 2.0   # s: fixes further apart say nothing of the acceleration between them (a gap)
 KIND_WAIT_S = 10.0     # s of monitoring without the vehicle's type (a HEARTBEAT comes every second): not sent
 SOLE_SAID = {"gnss": "GNSS fixes", "imu": "IMU samples"}
+IMU_SILENT_S = 3.0    # s without an IMU sample while it is integrated: GNSS alone until it is back (said)
 CAP_FIXES = 5          # fixes in a row whose receiver calls itself worse than guard takes: then said
 
 
@@ -130,6 +131,8 @@ class Monitor:
         self._held_said = False                     # the receiver holds its course at low speed: said once
         self._usual_said = False                    # a receiver poorer than the fixed bound all along: likewise
         self._beyond_said = False                   # ... or than guard tune believes of this vehicle: likewise
+        self._imu_silent = False                    # an integrated IMU's stream fell silent: on GNSS alone till it is back
+        self._imu_silent_since: int | None = None   # ... its last sample's time, where on the same clock
         self._reset()
 
     def _reset(self) -> None:
@@ -198,6 +201,8 @@ class Monitor:
                     f"time jumped {(sole[1] - base) / 1e6:+.1f} s by the {SOLE_SAID[sole[0]]} alone, the other "
                     f"stream silent over {SOLE_SPAN_US / 1e6:g} s of them")
                 events += self._reinitialise(sample.t_us, why, keep_learnt=True)
+                if sole is not None and sole[0] == "gnss" and self.inertial:    # the IMU's stream stopped
+                    events += self._imu_gone(sample.t_us, None, "since")
                 self.timebase.check(kind, sample.t_us, None)
         if gnss:
             self.gnss_index += 1
@@ -328,6 +333,7 @@ class Monitor:
         if self.ekf is None:
             return events + self._initialise(fix)
         events += self._kind_unsaid(fix.t_us)
+        events += self._imu_silence(fix.t_us)
         poor = None if self._cap_said else self.gnss_aid.beyond_cap(fix)
         self._cap_run = self._cap_run + 1 if poor else 0
         if poor and self._cap_run >= CAP_FIXES:     # a receiver that says so for a while, not one odd fix
@@ -370,6 +376,28 @@ class Monitor:
         else:
             events.append(self._estimate(fix.t_us, self.gnss_index))
         return events
+
+    def _imu_silence(self, t_us: int) -> list[Event]:
+        """An integrated IMU whose stream stops while the fixes go on (its rate set to 0 on the link, a
+        sensor gone) leaves a filter whose heading, yaw rate and acceleration nothing measures, kept
+        by the fixes alone: predicted as if the IMU were there, the first IMU fusion after a silence of
+        4 s or more raised an alarm (the compass's, the accelerometer's or the GNSS velocity's) on half
+        the tests' clean drives. So at the first fix IMU_SILENT_S after the last IMU sample the filter
+        goes on on GNSS alone, as for an IMU too slow to integrate (said), and the IMU's next sample
+        starts a new filter that integrates it (`_imu`). A silence of every stream (a link's outage) is
+        not this: its fix comes with the IMU's samples."""
+        last = self.timebase.last.get("imu")
+        if not self.inertial or last is None or t_us - last <= IMU_SILENT_S * 1e6:
+            return []
+        self.ekf.hold_heading()
+        self._heading_unset = False
+        return self._imu_gone(t_us, last, f"for {(t_us - last) / 1e6:.1f} s")
+
+    def _imu_gone(self, t_us: int, last: int | None, since: str) -> list[Event]:
+        """On GNSS alone until the IMU is back (`last`: its last sample's time on this clock, or None)."""
+        self._imu_silent, self._imu_silent_since, self.inertial = True, last, False
+        return [Notice(t_us, "warning", f"no IMU sample {since}: not integrated until it is back; GNSS position and "
+                       "velocity are tested against each other alone (jumps, freezes, drifts)")]
 
     def _accel_since_fix(self) -> np.ndarray | None:
         """The mean horizontal acceleration (east, north) since the last fix: the filter's velocity change
@@ -469,6 +497,11 @@ class Monitor:
 
     # -- IMU ------------------------------------------------------------------------------------
     def _imu(self, s: ImuSample) -> list[Event]:
+        if self._imu_silent:                        # back after a silence (_imu_silence): a new filter integrates it
+            since = self._imu_silent_since
+            self._imu_silent, self.inertial = False, True
+            after = "" if since is None else f" after {(s.t_us - since) / 1e6:.1f} s"
+            return self._reinitialise(s.t_us, f"IMU samples again{after}: integrated", keep_learnt=True)
         events = self._imu_rate(s.t_us)
         ax, ay, rate, mag, tilt, tilt_rate = level(s, *self.tilt.at(s))
         self._last_mag = mag

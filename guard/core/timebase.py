@@ -9,10 +9,10 @@ taken:
   `max_gap_s` of each other; the filter then starts again on it;
 - a stream whose partner has fallen silent (an IMU stream that stopped, then a GNSS silence over
   `max_gap_s`) confirms a new base alone: its held samples spanning SOLE_SPAN_US by their own stamps,
-  each within SOLE_STEP_US of the last, no sample of another kind heard in between (before, it waited
-  for the silent kind for good, and nothing was monitored again). Stray frames do not: forged ones
-  must come as a run of a stream, which does no more than a forged fix and IMU sample already can
-  (below);
+  each within SOLE_STEP_US of the latest (one out of order breaks no run), no sample of another kind
+  heard in between (before, it waited for the silent kind for good, and nothing was monitored
+  again). Stray frames do not: forged ones must come as a run of a stream, which does no more than
+  a forged fix and IMU sample already can (below);
 - a lone frame with a wild time stamp (a glitch, or a forged frame) is dropped and counted. One
   stamped ahead within `max_gap_s` is on the base and is taken: it moves the filter's time on, the
   genuine streams held behind it then agree on theirs, and guard starts again there (a forged frame
@@ -44,7 +44,8 @@ LATE_FIX_US = 1_000_000     # ... but a fix, stamped at its time of validity, ma
 OWN_STEP_US = 3_000_000     # an IMU the filter does not follow keeps its own clock: its next sample this soon
 CONFIRM_US = 1_000_000      # a fix this close to the IMU's latest sample is on the clock the IMU kept
 SOLE_SPAN_US = 3_000_000    # one kind's held samples this long, no other kind heard, confirm a base alone,
-SOLE_STEP_US = 1_000_000    # ... each within this of the last (a stream's run, 1 Hz or faster, not stray frames)
+SOLE_STEP_US = 2_500_000    # ... each within this of the last (a stream's run, a 1 Hz one with samples lost
+                            # or its clock off, not stray frames)
 
 
 class Timebase:
@@ -53,7 +54,8 @@ class Timebase:
         self.skipped = skipped
         self.heard: set[str] = set()                # the kinds of sample heard so far ("gnss", "imu")
         self.last: dict[str, int] = {}              # the last time stamp taken, per kind
-        self.candidate: dict[str, tuple[int, int, int]] = {}   # kind -> (first, last time, count) off the base
+        # kind -> (its first held sample's time, the first of its latest run, the latest, count) off the base
+        self.candidate: dict[str, tuple[int, int, int, int]] = {}
         self.sole: tuple[str, int] | None = None    # (kind, its first held sample's time) of a base it confirmed alone
 
     def reset(self) -> None:
@@ -75,18 +77,18 @@ class Timebase:
         back_us = LATE_FIX_US if kind == "gnss" else BACKWARD_US
         if now_us is not None and (t_us < now_us - back_us or (t_us > now_us + self.max_gap_us and not goes_on)):
             c = self.candidate
-            if any(abs(t_us - t) > self.max_gap_us for _, t, _ in c.values()):
+            if any(abs(t_us - t) > self.max_gap_us for _, _, t, _ in c.values()):
                 c.clear()                           # not the base the others moved to: start over
-            first, prev, n = c.get(kind, (t_us, t_us, 0))
-            if not 0 <= t_us - prev <= SOLE_STEP_US:
+            start, first, prev, n = c.get(kind, (t_us, t_us, t_us, 0))
+            if t_us - prev > SOLE_STEP_US:
                 first = t_us                        # not one stream's run of samples: its span starts again
-            c[kind] = (first, t_us, n + 1)
+            c[kind] = (start, first, max(prev, t_us), n + 1)   # one out of order or sent again breaks no run
             # every kind heard agrees on it; a stream of one kind alone, with two samples; or one kind's
             # samples alone over SOLE_SPAN_US (any other kind heard in between would have cleared them
             # or joined them): the other has fallen silent
-            sole = len(c) == 1 and c[kind][2] >= 2 and t_us - first >= SOLE_SPAN_US
-            if (set(c) >= self.heard and (len(self.heard) > 1 or c[kind][2] >= 2)) or sole:
-                self.sole = (kind, first) if sole and len(self.heard) > 1 else None
+            sole = len(c) == 1 and n + 1 >= 2 and max(prev, t_us) - first >= SOLE_SPAN_US
+            if (set(c) >= self.heard and (len(self.heard) > 1 or n + 1 >= 2)) or sole:
+                self.sole = (kind, start) if sole and len(self.heard) > 1 else None
                 return "rebase"
             self.skipped["time_off_base"] += 1
             return "drop"
