@@ -197,7 +197,9 @@ class Monitor:
             if verdict == "rebase":
                 base = self.t_us if self.t_us is not None else self.timebase.last[kind]   # no filter yet
                 sole = self.timebase.sole
-                why = f"time jumped {(sample.t_us - base) / 1e6:+.1f} s" if sole is None else (
+                jump = (sample.t_us - base) / 1e6
+                ahead = " (every stream silent that long, or their clock set on)" if jump > 0 else ""
+                why = f"time jumped {jump:+.1f} s{ahead}" if sole is None else (
                     f"time jumped {(sole[1] - base) / 1e6:+.1f} s by the {SOLE_SAID[sole[0]]} alone, the other "
                     f"stream silent over {SOLE_SPAN_US / 1e6:g} s of them")
                 events += self._reinitialise(sample.t_us, why, keep_learnt=True)
