@@ -246,6 +246,32 @@ class NavEKF:
         """The position's random walk (m/sqrt(s)): the receiver's correlated error the estimate follows."""
         self.q[X] = self.q[Y] = q_pos * q_pos
 
+    def unmeasured(self, on: bool, air: bool, widen: bool = True) -> None:
+        """An integrated IMU silent (`on`): nothing measures the heading's turns or the acceleration.
+        The heading and yaw rate are held where they are, as on GNSS alone (rows and columns zeroed: a
+        fix's velocity could otherwise turn the heading through correlations nothing measures, and on
+        the tests' drives it turned 130 degrees in 12 s, sure of it to 27), and the acceleration is a
+        random walk of the vehicle's own manoeuvres (q_accel_no_imu_mps2). Off (the IMU back): the
+        heading as uncertain as at a start, its yaw rate too, the IMU's noise again; what the filter
+        learnt (biases, the compass's offset, slip and lever arm) kept throughout. `widen` False: the
+        heading as sure as when it was held (its compass's alarm stands: nothing would bring it back)."""
+        c = self.cfg
+        if on:
+            self._held_p_th = float(self.P[TH, TH])
+            self.x[W] = 0.0
+            for i in (TH, W):
+                self.P[i, :] = self.P[:, i] = 0.0
+                self.q[i] = 0.0
+            self.q[AX] = self.q[AY] = c.q_accel_no_imu_mps2 ** 2
+            return
+        held = getattr(self, "_held_p_th", 0.0)
+        self.P[TH, TH] = max(held, c.p0_heading_rad ** 2) if widen else held
+        self.P[W, W] = max(self.P[W, W], c.p0_yaw_rate_radps ** 2)
+        self.q[TH] = c.q_heading_rad ** 2
+        w = c.q_yaw_rate_air_radps if air else c.q_yaw_rate_radps
+        self.q[W] = w * w
+        self.q[AX] = self.q[AY] = c.q_accel_mps2 ** 2
+
     def hold_heading(self) -> None:
         """GNSS alone (no IMU fast enough to integrate): the heading, yaw rate and IMU biases are held
         where they are, without noise, so that the model is the linear one of a body velocity and

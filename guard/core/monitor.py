@@ -49,7 +49,7 @@ from guard.core.fit import ModelFit
 from guard.core.health import Health
 from guard.core.history import REWIND_S, History, state_minus
 from guard.core.isolation import HeadingWitness, Witnesses
-from guard.core.judge import Judge
+from guard.core.judge import CALM_RATIO, Judge
 from guard.core.longrun import LongRun
 from guard.core.timebase import SOLE_SPAN_US, Timebase
 from guard.model.events import Estimate, Event, Notice
@@ -59,7 +59,7 @@ from guard.model.sensors import CHANNELS, RECEIVER, Sensor
 MAX_FIX_INTERVAL_S = 2.0   # s: fixes further apart say nothing of the acceleration between them (a gap)
 KIND_WAIT_S = 10.0     # s of monitoring without the vehicle's type (a HEARTBEAT comes every second): not sent
 SOLE_SAID = {"gnss": "GNSS fixes", "imu": "IMU samples"}
-IMU_SILENT_S = 3.0    # s without an IMU sample while it is integrated: GNSS alone until it is back (said)
+IMU_SILENT_S = 3.0    # s without an IMU sample while it is integrated: its states carried unmeasured (said)
 CAP_FIXES = 5          # fixes in a row whose receiver calls itself worse than guard takes: then said
 
 
@@ -131,8 +131,11 @@ class Monitor:
         self._held_said = False                     # the receiver holds its course at low speed: said once
         self._usual_said = False                    # a receiver poorer than the fixed bound all along: likewise
         self._beyond_said = False                   # ... or than guard tune believes of this vehicle: likewise
-        self._imu_silent = False                    # an integrated IMU's stream fell silent: on GNSS alone till it is back
+        self._imu_silent = False                    # an integrated IMU's stream fell silent (said), not yet back
         self._imu_silent_since: int | None = None   # ... its last sample's time, where on the same clock
+        self._started_us: int | None = None         # the filter's first fix: the IMU's silence counts from it at most
+        self._imu_unmeasured = False                # the filter carries the IMU's states unmeasured (a gap)
+        self._imu_silence_said = False              # an IMU silence is said once a filter
         self._reset()
 
     def _reset(self) -> None:
@@ -203,8 +206,6 @@ class Monitor:
                     f"time jumped {(sole[1] - base) / 1e6:+.1f} s by the {SOLE_SAID[sole[0]]} alone, the other "
                     f"stream silent over {SOLE_SPAN_US / 1e6:g} s of them")
                 events += self._reinitialise(sample.t_us, why, keep_learnt=True)
-                if sole is not None and sole[0] == "gnss" and self.inertial:    # the IMU's stream stopped
-                    events += self._imu_gone(sample.t_us, None, "since")
                 self.timebase.check(kind, sample.t_us, None)
         if gnss:
             self.gnss_index += 1
@@ -256,6 +257,9 @@ class Monitor:
         self._reset()
         self.timebase.reset()
         self._kind_wait_from = None                 # 10 s of monitoring by the new clock
+        self._imu_silent, self._imu_silent_since = False, None     # a new filter says a silence anew
+        self._imu_unmeasured = False                # a new filter's model is the IMU's
+        self._imu_silence_said = False
         self.health.latched |= kept
         self.judge.last_alarm = {s: v for s, v in last_alarm.items() if s in kept}   # a standing alarm goes on
         return events
@@ -335,7 +339,8 @@ class Monitor:
         if self.ekf is None:
             return events + self._initialise(fix)
         events += self._kind_unsaid(fix.t_us)
-        events += self._imu_silence(fix.t_us)
+        quiet = self._imu_quiet(fix.t_us)
+        events += quiet
         poor = None if self._cap_said else self.gnss_aid.beyond_cap(fix)
         self._cap_run = self._cap_run + 1 if poor else 0
         if poor and self._cap_run >= CAP_FIXES:     # a receiver that says so for a while, not one odd fix
@@ -379,27 +384,33 @@ class Monitor:
             events.append(self._estimate(fix.t_us, self.gnss_index))
         return events
 
-    def _imu_silence(self, t_us: int) -> list[Event]:
-        """An integrated IMU whose stream stops while the fixes go on (its rate set to 0 on the link, a
-        sensor gone) leaves a filter whose heading, yaw rate and acceleration nothing measures, kept
-        by the fixes alone: predicted as if the IMU were there, the first IMU fusion after a silence of
-        4 s or more raised an alarm (the compass's, the accelerometer's or the GNSS velocity's) on half
-        the tests' clean drives. So at the first fix IMU_SILENT_S after the last IMU sample the filter
-        goes on on GNSS alone, as for an IMU too slow to integrate (said), and the IMU's next sample
-        starts a new filter that integrates it (`_imu`). A silence of every stream (a link's outage) is
-        not this: its fix comes with the IMU's samples."""
+    def _imu_quiet(self, t_us: int) -> list[Event]:
+        """An integrated IMU silent over IMU_SILENT_S at this fix (its stream stopped, its rate set to
+        0 on the link): from here the filter holds the heading and carries the acceleration as nothing
+        measures them (NavEKF.unmeasured), and the IMU's return gives the heading back to the next
+        compass reading, as at a start (`_imu`). Predicted as if the IMU were there, the fixes turned
+        the heading through correlations nothing measured (130 degrees in 12 s), and the first fusion
+        after a silence of 4 s or more raised an alarm (the compass's, the accelerometer's or the GNSS
+        velocity's) on half the tests' clean drives. Nothing else changes: the tests, the alarms that
+        stand and what the filter learnt go on through it (a new filter at its end, tried first, gave a
+        standing alarm's protection away to whoever could drop the IMU's frames for a few seconds; a
+        compass whose alarm stands gives no heading back). Said once a filter, and its end. The first
+        IMU_SILENT_S are still predicted as if the IMU were there (the heading may turn by then), and
+        while the heading is held its variance reads 0."""
         last = self.timebase.last.get("imu")
-        if not self.inertial or last is None or t_us - last <= IMU_SILENT_S * 1e6:
+        ref = last if last is not None else self._started_us
+        if not self.inertial or ref is None or t_us - ref <= IMU_SILENT_S * 1e6:
             return []
-        self.ekf.hold_heading()
-        self._heading_unset = False
-        return self._imu_gone(t_us, last, f"for {(t_us - last) / 1e6:.1f} s")
-
-    def _imu_gone(self, t_us: int, last: int | None, since: str) -> list[Event]:
-        """On GNSS alone until the IMU is back (`last`: its last sample's time on this clock, or None)."""
-        self._imu_silent, self._imu_silent_since, self.inertial = True, last, False
-        return [Notice(t_us, "warning", f"no IMU sample {since}: not integrated until it is back; GNSS position and "
-                       "velocity are tested against each other alone (jumps, freezes, drifts)")]
+        if not self._imu_unmeasured:
+            self._imu_unmeasured = True
+            self.ekf.unmeasured(True, not self.ground)
+        if self._imu_silent or self._imu_silence_said:
+            return []                               # said once a filter: a slow IMU's every interval is not news
+        self._imu_silent = self._imu_silence_said = True
+        self._imu_silent_since = last
+        since = f"for {(t_us - last) / 1e6:.1f} s" if last is not None else "since the filter started"
+        return [Notice(t_us, "warning", f"no IMU sample {since}: the accelerometer, gyro and compass untested until "
+                       "it is back, the GNSS holding the estimate")]
 
     def _accel_since_fix(self) -> np.ndarray | None:
         """The mean horizontal acceleration (east, north) since the last fix: the filter's velocity change
@@ -492,19 +503,28 @@ class Monitor:
         self.ekf.tilting(not self.ground)
         if self.inertial is False:
             self.ekf.hold_heading()
-        self.t_us = fix.t_us
+        self.t_us = self._started_us = fix.t_us
         if f.use_gnss_velocity and fix.vel_n_mps is not None:
             self.gnss_aid.held_course(fix)      # the first fix's course, which the next may repeat
         return [Notice(fix.t_us, "info", f"filter initialised at {fix.lat_deg:.6f}, {fix.lon_deg:.6f}")]
 
     # -- IMU ------------------------------------------------------------------------------------
     def _imu(self, s: ImuSample) -> list[Event]:
-        if self._imu_silent:                        # back after a silence (_imu_silence): a new filter integrates it
-            since = self._imu_silent_since
-            self._imu_silent, self.inertial = False, True
-            after = "" if since is None else f" after {(s.t_us - since) / 1e6:.1f} s"
-            return self._reinitialise(s.t_us, f"IMU samples again{after}: integrated", keep_learnt=True)
         events = self._imu_rate(s.t_us)
+        if self._imu_unmeasured and self.ekf is not None:     # back after a gap (_imu_quiet): the heading
+            self._imu_unmeasured = False                        # from the next compass reading, as at a start
+            # the heading from the next compass reading, but not from one whose alarm stands (then as
+            # sure as it was held), nor while its test is near its threshold (then as uncertain as at a
+            # start, the compass tested against it). What this leaves: a slow compass attack already
+            # under way but calm when the IMU comes back is taken as the heading (README)
+            trusted = Sensor.MAG not in self.health.excluded
+            self.ekf.unmeasured(False, not self.ground, widen=trusted)
+            calm = self.judge.ratios.get(Sensor.MAG, 0.0) < CALM_RATIO
+            self._heading_unset = self.inertial is not False and trusted and calm
+        if self._imu_silent:                        # back after a silence (_imu_quiet)
+            since, self._imu_silent = self._imu_silent_since, False
+            after = "" if since is None or s.t_us < since else f" after {(s.t_us - since) / 1e6:.1f} s"
+            events.append(Notice(s.t_us, "info", f"IMU samples again{after}"))
         ax, ay, rate, mag, tilt, tilt_rate = level(s, *self.tilt.at(s))
         self._last_mag = mag
         events += self._compass(s.t_us, mag is not None)
