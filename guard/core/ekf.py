@@ -179,6 +179,7 @@ class NavEKF:
         # False: b_psi, k_s and d are held as they are, "consider" states (their rows of K zeroed): while a test is near
         # its threshold, what the filter learns of the vehicle could be an attack's doing (Monitor)
         self.learning = True
+        self._held_p_th = 0.0       # the heading's variance when an IMU silence held it (unmeasured)
 
     def predict(self, T: float) -> None:
         """Propagate by T seconds: x = f(x), P = F P Fᵀ + Q, in steps of at most MAX_STEP_S (the
@@ -264,7 +265,7 @@ class NavEKF:
                 self.q[i] = 0.0
             self.q[AX] = self.q[AY] = c.q_accel_no_imu_mps2 ** 2
             return
-        held = getattr(self, "_held_p_th", 0.0)
+        held = self._held_p_th
         self.P[TH, TH] = max(held, c.p0_heading_rad ** 2) if widen else held
         self.P[W, W] = max(self.P[W, W], c.p0_yaw_rate_radps ** 2)
         self.q[TH] = c.q_heading_rad ** 2

@@ -339,8 +339,7 @@ class Monitor:
         if self.ekf is None:
             return events + self._initialise(fix)
         events += self._kind_unsaid(fix.t_us)
-        quiet = self._imu_quiet(fix.t_us)
-        events += quiet
+        events += self._imu_quiet(fix.t_us)
         poor = None if self._cap_said else self.gnss_aid.beyond_cap(fix)
         self._cap_run = self._cap_run + 1 if poor else 0
         if poor and self._cap_run >= CAP_FIXES:     # a receiver that says so for a while, not one odd fix
@@ -511,11 +510,11 @@ class Monitor:
     # -- IMU ------------------------------------------------------------------------------------
     def _imu(self, s: ImuSample) -> list[Event]:
         events = self._imu_rate(s.t_us)
-        if self._imu_unmeasured and self.ekf is not None:     # back after a gap (_imu_quiet): the heading
-            self._imu_unmeasured = False                        # from the next compass reading, as at a start
-            # the heading from the next compass reading, but not from one whose alarm stands (then as
-            # sure as it was held), nor while its test is near its threshold (then as uncertain as at a
-            # start, the compass tested against it). What this leaves: a slow compass attack already
+        if self._imu_unmeasured and self.ekf is not None:     # back after a silence (_imu_quiet)
+            self._imu_unmeasured = False
+            # the heading from the next compass reading, as at a start, but not from one whose alarm
+            # stands (then as sure as it was held), nor while its test is near its threshold (then as
+            # uncertain as at a start, the compass tested against it). What this leaves: a slow compass attack already
             # under way but calm when the IMU comes back is taken as the heading (README)
             trusted = Sensor.MAG not in self.health.excluded
             self.ekf.unmeasured(False, not self.ground, widen=trusted)
