@@ -16,6 +16,7 @@ def shared() -> Path:
     return ROOT.parent / "shared"
 
 
+@pytest.hookimpl(optionalhook=True)        # a hook of pytest-xdist: no error where it is not installed
 def pytest_xdist_auto_num_workers(config):
     """`-n auto` (make test): two workers per core, at most 16. The suite is mostly CPU-bound
     replays, but its system tests wait on sockets, processes and timeouts; a second worker per core
