@@ -397,16 +397,19 @@ def test_an_imu_silence_gives_away_neither_a_standing_alarm_nor_what_was_learnt(
 @pytest.mark.parametrize("seed", [1, 3])
 def test_a_slow_compass_attack_through_an_imu_silence_on_wheels_is_still_caught(seed):
     """A compass turned 0.5 degree/s from 40 s, the IMU's frames dropped from 45 to 48.5 s: on wheels
-    it is still caught within about 11 s of its onset, as without the drop (the compass's alarm at
-    about 48 s). What the drop costs (README): the alarm is the GNSS velocity's, not the compass's, as
-    the compass's test waits through the silence and the check that would name it takes no record
-    with a gap; this test holds the detection, and says the naming as it is."""
+    it is still caught within 12 s of its onset, and the same silence without the attack raises no
+    alarm. Without the drop the GNSS velocity's test alarms after a run of over 4 s, in which the
+    isolation sees the compass turn apart from the gyro and the course, and names the compass. What
+    the drop costs (README): its alarm comes from a run begun at the IMU's return, under the 2 s the
+    isolation needs to judge the compass's turn, and stays the GNSS velocity's. Pinned as it is, so
+    that a change of the naming changes the README too."""
     attack = drive(60.0, yaw=0.4, seed=seed, mag_turn=lambda t: 0.5 * (t - 40.0) if t >= 40.0 else 0.0)
     clean = of(run(attack, GROUND)[1], Alarm)
-    assert clean and clean[0].sensor == Sensor.MAG and clean[0].t_us <= T0_US + 50e6, clean[:1]
+    assert clean and clean[0].sensor == Sensor.MAG and T0_US + 40e6 <= clean[0].t_us <= T0_US + 50e6, clean[:1]
     dropped = of(run(imu_silent(attack, 45.0, 48.5), GROUND)[1], Alarm)
-    assert dropped and dropped[0].t_us <= T0_US + 52e6, dropped[:1]
-    assert dropped[0].sensor in (Sensor.MAG, Sensor.GNSS_VEL), dropped[0]
+    assert dropped and T0_US + 40e6 <= dropped[0].t_us <= T0_US + 52e6, dropped[:1]
+    assert dropped[0].sensor == Sensor.GNSS_VEL, dropped[0]      # the README's "what it still gives away"
+    assert not of(run(imu_silent(drive(60.0, yaw=0.4, seed=seed), 45.0, 48.5), GROUND)[1], Alarm)
 
 
 def test_an_imu_that_stops_for_good_then_a_gnss_silence_is_said_and_quiet():
