@@ -16,9 +16,8 @@ install: $(BIN)/python
 # opencv, wxPython: hundreds of MB a headless router does not use); its light ones are in [test].
 MAVPROXY := MAVProxy==1.8.75
 
-# The suite on two workers per core (tests/conftest.py: its system tests wait on sockets and
-# processes), each test file on one worker (its module fixtures run once); about 14 minutes on 2
-# cores (README). `make test PYTEST_ARGS=` runs it serially.
+# The suite on every core, each test file on one worker (its module fixtures run once); 10 to 15
+# minutes on 2 cores (README). `make test PYTEST_ARGS=` runs it serially.
 PYTEST_ARGS ?= -n auto --dist loadfile
 
 install-test: $(BIN)/python

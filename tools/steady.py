@@ -6,7 +6,7 @@
 A flaky test blocks landings at random; this finds one before CI does. The clone is of the commit
 checked out (uncommitted changes are not in it), installed once with the README's test command
 (`make install-test`), then `python -m pytest` is run N times with the arguments `make test` gives it
-(the Makefile's PYTEST_ARGS: two workers a core, tests/conftest.py; a test file per worker) unless others follow `--`. The
+(the Makefile's PYTEST_ARGS: every core, a test file per worker) unless others follow `--`. The
 shared data folder beside the checkout, where there is one, is linked beside the clone, so that the
 tests of the real logs run rather than skip. Each run's
 outcome and time is printed as it ends, and the summary names the failing run's first failures;
