@@ -16,10 +16,9 @@ install: $(BIN)/python
 # opencv, wxPython: hundreds of MB a headless router does not use); its light ones are in [test].
 MAVPROXY := MAVProxy==1.8.75
 
-# The suite on every core, each test file on one worker (its module fixtures run once), the files
-# marked heavy first (tests/conftest.py); 10 to 15
+# The suite on every core, each test file on one worker (its module fixtures run once); 10 to 15
 # minutes on 2 cores (README). `make test PYTEST_ARGS=` runs it serially.
-PYTEST_ARGS ?= -n auto --dist loadfile --no-loadscope-reorder
+PYTEST_ARGS ?= -n auto --dist loadfile
 
 install-test: $(BIN)/python
 	$(BIN)/python -m pip install --quiet -e '.[test]'

@@ -23,8 +23,6 @@ from guard_sim import scenario
 from guard_sim.scenario import Attack
 from guard_sim.run import run
 
-pytestmark = pytest.mark.heavy       # a minute or more on one worker: taken first (tests/conftest.py)
-
 SLOW = (1.5, 2.0, 1.0, 2.5, 1.5, 1.0)       # the clean route's legs at walking pace (m/s)
 HOLD_MPS = 1.5                               # the receiver holds its course below this
 

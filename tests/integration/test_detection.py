@@ -13,8 +13,6 @@ from guard.runtime.replay import replay
 from guard_sim import scenario
 from guard_sim.run import run
 
-pytestmark = pytest.mark.heavy       # a minute or more on one worker: taken first (tests/conftest.py)
-
 SEEDS = range(20)
 
 

@@ -21,8 +21,6 @@ from guard_sim import scenario
 from guard_sim.run import run
 from guard_sim.scenario import Attack
 
-pytestmark = pytest.mark.heavy       # a minute or more on one worker: taken first (tests/conftest.py)
-
 SEEDS = range(4)
 START_S = 30.0
 

@@ -39,8 +39,6 @@ from guard_sim import scenario                               # noqa: E402
 from guard_sim.mavout import Encoder                         # noqa: E402
 from guard_sim.run import Simulation                         # noqa: E402
 
-pytestmark = pytest.mark.heavy       # a minute or more on one worker: taken first (tests/conftest.py)
-
 ROOT = Path(__file__).resolve().parents[2]
 SCENARIOS = ROOT / "configs" / "scenarios"
 MAGIC = b"\x89MCAP0\r\n"

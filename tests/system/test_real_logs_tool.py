@@ -10,8 +10,6 @@ import pytest
 
 from conftest import ROOT
 
-pytestmark = pytest.mark.heavy       # a minute or more on one worker: taken first (tests/conftest.py)
-
 
 def tool(*args):
     return subprocess.run([sys.executable, str(ROOT / "tools" / "real_logs.py"), *map(str, args)],

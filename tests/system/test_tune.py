@@ -18,8 +18,6 @@ from guard_sim import scenario as scn
 from guard_sim.run import run
 from guard_sim.scenario import Attack
 
-pytestmark = pytest.mark.heavy       # a minute or more on one worker: taken first (tests/conftest.py)
-
 STEP_AT_S = 80.0
 SLIP = 0.01
 

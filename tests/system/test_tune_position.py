@@ -17,8 +17,6 @@ from guard_sim import scenario as scn
 from guard_sim.run import run
 from guard_sim.scenario import Attack
 
-pytestmark = pytest.mark.heavy       # a minute or more on one worker: taken first (tests/conftest.py)
-
 DURATION_S = 80.0
 STEP_AT_S = 60.0
 ATTACKED = (3, 4, 5)

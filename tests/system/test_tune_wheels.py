@@ -11,8 +11,6 @@ from guard.runtime.tune import tune
 from guard_sim import scenario as scn
 from guard_sim.run import run
 
-pytestmark = pytest.mark.heavy       # a minute or more on one worker: taken first (tests/conftest.py)
-
 SLIP = 0.01
 
 

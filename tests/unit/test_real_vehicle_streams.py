@@ -14,8 +14,6 @@ from guard.model.events import Alarm, Estimate, Notice
 from guard.model.samples import GnssFix, VehicleType
 from unit.synthetic import T0_US, drive, of, run
 
-pytestmark = pytest.mark.heavy       # a minute or more on one worker: taken first (tests/conftest.py)
-
 GROUND = MonitorConfig(declination_deg=0.0, vehicle="ground")
 AIR = MonitorConfig(declination_deg=0.0, vehicle="air")
 
