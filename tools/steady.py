@@ -1,6 +1,6 @@
 """The steady suite: the whole test suite, N times in a row on a fresh clone, stopping at the first failure.
 
-    python tools/steady.py --runs 20                 # 20 full runs of HEAD (about 6 minutes each on 2 cores)
+    python tools/steady.py --runs 20                 # 20 full runs of HEAD (about 16 minutes each on 2 cores)
     python tools/steady.py --runs 5 -- tests/unit    # pytest arguments after -- (instead of make test's)
 
 A flaky test blocks landings at random; this finds one before CI does. The clone is of the commit
