@@ -26,11 +26,13 @@ def _replay(args) -> int:
     if args.detector:
         cfg = replace(cfg, monitor=replace(cfg.monitor, detector=replace(cfg.monitor.detector, name=args.detector)))
     cfg = _with_system_id(cfg, args.system_id)
+    from guard.runtime.agreement import Agreement, said as wander_said
     from guard.runtime.deviation import Headings, compass_fits, said
     from guard.sinks.timeline import Timeline
     headings = Headings(cfg=cfg.monitor)    # the compass against the gyro over the whole log
     timeline = Timeline()                   # what the core said, in order
-    listeners = [headings, timeline]
+    agreement = Agreement()                 # the levelled accelerometers against the GNSS velocity
+    listeners = [headings, timeline, agreement]
     trace = Trace() if args.plot else None
     if trace:
         listeners.append(trace)
@@ -48,6 +50,7 @@ def _replay(args) -> int:
             log.close()
     iron, before, first_s = compass_fits(headings, report)
     report["compass_deviation"] = {**iron, **({"before_first_alarm": before} if before else {})}
+    report["accelerometer_wander"] = agreement.measure()
     if args.report:
         write_report(report, args.report)
     if args.plot:
@@ -74,6 +77,8 @@ def _replay(args) -> int:
         for note in report["notes"]:
             print(f"  {note}")
         if line := said(iron, before, first_s):
+            print(f"  {line}")
+        if line := wander_said(report["accelerometer_wander"]):
             print(f"  {line}")
         for reason, n in sorted(report["skipped"].items(), key=lambda kv: -kv[1]):
             print(f"  skipped {n} {SKIPPED.get(reason, reason.replace('_', ' '))}")

@@ -1,16 +1,19 @@
-"""tools/imu_gnss_agreement.py: the levelled accelerometers against the GNSS velocity's change, outside
-any filter. A simulated drive agrees within the receiver's noise; the same drive with a constant
-accelerometer bias disagrees by that bias at every window length, while its Allan deviation (what
-moves from window to window) stays small; ArduPilot's SITL copter agrees; bad input is named."""
+"""tools/imu_gnss_agreement.py and guard replay's line (guard.runtime.agreement): the levelled
+accelerometers against the GNSS velocity's change, outside any filter. A simulated drive agrees within
+the receiver's noise; the same drive with a constant accelerometer bias disagrees by that bias at
+every window length, while its Allan deviation (what moves from window to window) stays small;
+ArduPilot's SITL copter agrees; bad input is named."""
 
 import dataclasses
 import importlib.util
+import json
 import subprocess
 import sys
 
 import pytest
 
 from conftest import ROOT
+from guard.runtime.agreement import WANDER_SAY_MPS2, said
 from guard_sim import scenario as scn
 from guard_sim.run import run
 
@@ -78,3 +81,18 @@ def test_bad_input_is_named_and_a_missing_file_is_an_error(drives, tmp_path):
                          timeout=60)
     assert got.returncode == 2 and f"{tmp_path / 'absent.bin'}: no such file" in got.stderr
     assert "Traceback" not in got.stderr
+
+
+def test_guard_replay_says_the_wander_and_what_it_means_only_where_it_is_large(drives, tmp_path):
+    report = tmp_path / "report.json"
+    got = subprocess.run([sys.executable, "-m", "guard", "replay", drives["clean", 1], "--report", str(report)],
+                         capture_output=True, text=True, timeout=300)
+    assert got.returncode == 0, got.stderr
+    rows = json.loads(report.read_text())["accelerometer_wander"]
+    at8 = next(r for r in rows if r["window_s"] == 8.0)
+    assert f"they wander {at8['allan_mps2']:.2f} m/s^2 over 8 s" in got.stdout
+    assert "cannot tell one apart" not in got.stdout
+    row = {"window_s": 8.0, "windows": 20, "allan_mps2": 2 * WANDER_SAY_MPS2}
+    assert "cannot tell one apart" in said([row])
+    assert "cannot tell one apart" not in said([{**row, "allan_mps2": WANDER_SAY_MPS2 / 2}])
+    assert said([{**row, "allan_mps2": None}]) is None and said(None) is None
