@@ -24,7 +24,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from guard.errors import GuardError                                      # noqa: E402
-from guard.runtime.agreement import MIN_COVERED, WINDOWS_S, Agreement    # noqa: E402
+from guard.runtime.agreement import MAX_STEP_S, WINDOWS_S, Agreement     # noqa: E402
 from guard.runtime.replay import replay                                  # noqa: E402
 
 
@@ -37,9 +37,9 @@ def measure(path: str, windows: tuple[float, ...] = WINDOWS_S) -> dict:
         return {"log": path, "skipped": str(e)}
     rows = agreement.measure(windows)
     if rows is None:
-        return {"log": path, "skipped": f"no window with fixes on both ends and the IMU integrated over "
-                                        f"{MIN_COVERED:.0%} of it (telemetry's IMU is too slow, or guard never had "
-                                        "a heading to integrate it with)"}
+        return {"log": path, "skipped": f"no window with fixes on both ends and the IMU integrated between them "
+                                        f"without a step over {MAX_STEP_S:g} s (telemetry's IMU is too slow, or guard "
+                                        "never had a heading to integrate it with)"}
     return {"log": path, "rows": rows}
 
 

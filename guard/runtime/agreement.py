@@ -26,9 +26,10 @@ was caught within 10 s in 13 of 57 runs, 8 of those windows alarming without it 
 real flights' levelled accelerometers wander").
 
 A window with |e| over OUTLIER_MPS2 (a receiver's jump, a blow at the IMU) is left out and counted;
-so is one across a gap (no fix for 1.5 W, or the IMU integrated over less than MIN_COVERED of it: a
-step over MAX_STEP_S is a gap, not integrated). Time going back (an autopilot's reboot) starts a new
-segment: no window spans two. The heading is the filter's: a heading a few degrees off turns the
+so is one across a gap (no fix for 1.5 W, or an IMU step over MAX_STEP_S, or a sample that is not a
+number: not integrated). The IMU's time going back by more than BACK_S (an
+autopilot's reboot) starts a new segment: no window spans two; less, the sample is out of order and
+left out. The heading is the filter's: a heading a few degrees off turns the
 vehicle's own acceleration by as much (0.05 rad of 1.5 m/s^2: 0.08 m/s^2), so on a hard-flown vehicle
 part of e is guard's heading, not the IMU.
 """
@@ -53,14 +54,16 @@ WANDER_SAY_MPS2 = 0.2   # an Allan deviation at 8 s over this: an accelerometer 
                         # what the vehicle does (the real flights' attacks, README)
 OUTLIER_MPS2 = 5.0      # a window this far off is a receiver's jump or a blow, not the IMU's error
 MAX_STEP_S = 0.25       # an IMU step longer than this is a gap: not integrated across (a 10 Hz IMU steps 0.1 s)
-MIN_COVERED = 0.9       # the share of a window the IMU must have been integrated over
 MIN_ALIGNED = 0.5       # |(C, S)| / W under this: the window turned too far for M to be solved
-TRACK = ("t", "sum_e", "sum_n", "covered", "cos", "sin", "yaw")     # a kept row of the integrals
+BACK_S = 1.0            # s an IMU sample's time may go back and be a sample out of order (left out); further
+                        # back is a reboot, which starts a new segment. A fix more than this from the IMU's
+                        # time is on another clock (the one before a reboot) and left out
+TRACK = ("t", "sum_e", "sum_n", "gaps", "cos", "sin", "yaw")     # a kept row of the integrals
 
 
 class Agreement:
     """A replay's listener: the levelled specific force integrated since the start (east, north), the
-    time integrated and the sums of cos and sin of the heading, kept every TRACK_S; and each fix's
+    IMU's gaps counted and the sums of cos and sin of the heading, kept every TRACK_S and at each gap; and each fix's
     velocity. The heading is the filter's latest estimate carried to each IMU sample by its yaw rate."""
 
     needs_tests = False
@@ -73,9 +76,8 @@ class Agreement:
         self._new_segment()
 
     def _new_segment(self) -> None:
-        self._sums = [0.0] * 5                     # sum E, sum N, time, sum cos, sum sin
+        self._sums = [0.0] * 5                     # sum E, sum N, gaps, sum cos, sum sin
         self._t: float | None = None               # the last IMU sample's time (s)
-        self._t_fix = -math.inf
         self._kept = -math.inf
         self.track, self.fixes = array("d"), array("d")    # TRACK rows; t, v E, v N: flattened
         self.segments.append((self.track, self.fixes))
@@ -86,30 +88,36 @@ class Agreement:
         elif isinstance(s, ImuSample):
             fwd, left, rate = level(s, *self.tilt.at(s))[:3]
             t = s.t_us / 1e6
-            if self._t is not None and t < self._t:          # time went back: a reboot
-                self._new_segment()
+            if self._t is not None and t < self._t:
+                if t > self._t - BACK_S:                    # a sample out of order: not integrated
+                    return
+                self._new_segment()                         # time went back: a reboot
             dt = 0.0 if self._t is None else t - self._t
             self._t = t
-            if self.heading is None or not 0.0 < dt <= MAX_STEP_S \
-                    or not (math.isfinite(fwd) and math.isfinite(left) and math.isfinite(rate)):
+            if self.heading is None or dt <= 0.0:
+                return
+            if dt > MAX_STEP_S or not (math.isfinite(fwd) and math.isfinite(left) and math.isfinite(rate)):
+                self._sums[2] += 1                          # a gap: no window across it is measured
+                self._keep(t)
                 return
             self.heading += rate * dt
             c, sn = math.cos(self.heading), math.sin(self.heading)
             sums = self._sums
             sums[0] += (c * fwd - sn * left) * dt
             sums[1] += (sn * fwd + c * left) * dt
-            sums[2] += dt
             sums[3] += c * dt
             sums[4] += sn * dt
             if t - self._kept >= self.TRACK_S:
-                self._kept = t
-                self.track.extend((t, *sums, self.heading))
+                self._keep(t)
         elif isinstance(s, GnssFix) and s.fix_ok and s.vel_n_mps is not None and s.vel_e_mps is not None \
                 and math.isfinite(s.vel_n_mps) and math.isfinite(s.vel_e_mps):
             t = s.t_us / 1e6
-            if t > self._t_fix:                             # in time order, once each
-                self._t_fix = t
-                self.fixes.extend((t, s.vel_e_mps, s.vel_n_mps))
+            if self._t is not None and abs(t - self._t) <= BACK_S:    # not one stamped on the clock before a
+                self.fixes.extend((t, s.vel_e_mps, s.vel_n_mps))      # reboot, nor before the IMU speaks
+
+    def _keep(self, t: float) -> None:
+        self._kept = t
+        self.track.extend((t, *self._sums, self.heading))
 
     def on_events(self, events) -> None:
         for e in events:
@@ -153,6 +161,8 @@ def rows(track: array, fixes: array) -> np.ndarray:
     if len(tr) < 2 or len(fx) < 2:
         return np.zeros((0, len(TRACK) + 2))
     fx = fx[(fx[:, 0] >= tr[0, 0]) & (fx[:, 0] <= tr[-1, 0])]
+    fx = fx[np.sort(np.unique(fx[:, 0], return_index=True)[1])] if len(fx) else fx   # once each,
+    fx = fx[np.argsort(fx[:, 0], kind="stable")]                                         # in time order
     at = [np.interp(fx[:, 0], tr[:, 0], tr[:, i]) for i in range(1, len(TRACK))]
     return np.column_stack([fx[:, 0], *at, fx[:, 1], fx[:, 2]])
 
@@ -164,14 +174,14 @@ def discrepancies(r: np.ndarray, window_s: float) -> tuple[np.ndarray, np.ndarra
     t = r[:, 0]
     out, acc, adjacent, left_out, k, last_end = [], [], [], 0, 0, -1
     while k < len(t):
-        j = int(np.searchsorted(t, t[k] + window_s - 1e-3))
+        j = max(int(np.searchsorted(t, t[k] + window_s - 1e-3)), k + 1)
         if j >= len(t):
             break
         span = t[j] - t[k]
-        step = r[j] - r[k]          # the sums over the window: E, N, time covered, cos, sin (columns 1 to 5)
+        step = r[j] - r[k]          # the sums over the window: E, N, gaps, cos, sin (columns 1 to 5)
         c, s = step[4], step[5]
         aligned = math.hypot(c, s)
-        if span <= 0.0 or span > 1.5 * window_s or step[3] < MIN_COVERED * span or aligned < MIN_ALIGNED * span:
+        if span <= 0.0 or span > 1.5 * window_s or step[3] != 0.0 or aligned < MIN_ALIGNED * span:
             left_out += 1
             k = j
             continue

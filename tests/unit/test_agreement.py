@@ -99,3 +99,21 @@ def test_nothing_to_measure_is_none():
     a = Agreement()
     a.on_sample(GnssFix(1_000_000, True, 47.0, 8.0, 400.0, 1.0, 0.0, 0.8, 0.1))
     assert a.measure() is None
+
+
+def test_a_stale_fix_after_a_reboot_or_a_jittering_imu_loses_nothing_and_a_tiny_window_ends():
+    bias = (0.3, 0.1)
+    before = circle(bias, seconds=30.0)
+    after = circle(bias, seconds=40.0, t0=5.0, theta0=1.1)
+    # the receiver's next fix still on the clock before the reboot, arriving after it
+    stale = GnssFix(int(29.95e6), True, 47.0, 8.0, 400.0, 0.0, SPEED, 0.8, 0.1)
+    a = run(before + after[:1] + [(stale, [])] + after[1:])
+    clean = run(before + after)
+    assert {r["window_s"]: r["windows"] for r in a.measure()} == {r["window_s"]: r["windows"] for r in clean.measure()}
+    # an IMU sample stamped 2 ms early, among the others: left out, no new segment
+    jitter = circle(bias, seconds=30.0)
+    t, s = jitter[500]
+    jitter.insert(501, (ImuSample(t.t_us - 2000, *[getattr(t, f) for f in ImuSample.__slots__[1:]]), [])
+                  if isinstance(t, ImuSample) else (t, s))
+    assert len(run(jitter).segments) == 1
+    assert run(circle(bias, seconds=10.0)).measure((0.0005,)) is None      # no window that short: and it ends
