@@ -58,7 +58,7 @@ MIN_ALIGNED = 0.5       # |(C, S)| / W under this: the window turned too far for
 BACK_S = 1.0            # s an IMU sample's time may go back and be a sample out of order (left out); further
                         # back is a reboot, which starts a new segment. A fix more than this from the IMU's
                         # time is on another clock (the one before a reboot) and left out
-TRACK = ("t", "sum_e", "sum_n", "gaps", "cos", "sin", "yaw")     # a kept row of the integrals
+TRACK = ("t", "sum_e", "sum_n", "gaps", "cos", "sin")     # a kept row of the integrals
 
 
 class Agreement:
@@ -117,7 +117,7 @@ class Agreement:
 
     def _keep(self, t: float) -> None:
         self._kept = t
-        self.track.extend((t, *self._sums, self.heading))
+        self.track.extend((t, *self._sums))
 
     def on_events(self, events) -> None:
         for e in events:
@@ -185,7 +185,7 @@ def discrepancies(r: np.ndarray, window_s: float) -> tuple[np.ndarray, np.ndarra
             left_out += 1
             k = j
             continue
-        dv = step[7:9]
+        dv = step[6:8]
         d = step[1:3] - dv
         e = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1]]) / (aligned * aligned)
         if not np.all(np.abs(e) <= OUTLIER_MPS2):           # NaN too
