@@ -2,7 +2,8 @@
 sensor, the largest statistic/threshold per sensor, how far the estimate stood from the fixes, the
 receiver's own largest jump between fixes, and guard replay's line on a compass that reads off by
 heading, guard.runtime.deviation), then the totals, with how many of the logs guard run would warn
-of such a compass on (its LiveCheck, played through each log beside the replay). For logs
+of such a compass on (its LiveCheck, played through each log beside the replay), and of levelled
+accelerometers that wander from the GNSS (guard.runtime.agreement.LiveWander, likewise). For logs
 of flights with no attack, every alarm is a false one or a fault in the vehicle: this is how guard is
 measured on real vehicles it was never tuned on.
 
@@ -49,6 +50,7 @@ from guard.config import parse, read                 # noqa: E402
 from guard.errors import GuardError                  # noqa: E402
 from guard.core.geo import LocalFrame                # noqa: E402
 from guard.model.samples import GnssFix, ImuSample   # noqa: E402
+from guard.runtime.agreement import LiveWander                                         # noqa: E402
 from guard.runtime.deviation import SAY_DEG, Headings, LiveCheck, compass_fits, said   # noqa: E402
 from guard.runtime.replay import replay              # noqa: E402
 import pymap3d                                       # noqa: E402
@@ -203,7 +205,9 @@ def one(job: tuple[str, str | None, tuple[str, ...], tuple[str, ...], bool]) -> 
         headings = Headings(cfg=cfg.monitor)
         live: list[str] = []                                # what guard run would say of the compass
         check = LiveCheck(live.append, cfg.monitor)
-        r = replay(path, cfg, listeners=[span, headings, check])
+        wander: list[str] = []                              # ... and of the accelerometers' wander
+        wanders = LiveWander(wander.append)
+        r = replay(path, cfg, listeners=[span, headings, check, wanders])
     except GuardError as e:
         return {"log": path, "error": str(e)}
     iron, before, first_s = compass_fits(headings, r)       # as guard replay fits it
@@ -219,7 +223,9 @@ def one(job: tuple[str, str | None, tuple[str, ...], tuple[str, ...], bool]) -> 
            "compass_said_live": None if not live else {
                "line": live[0], "time_usec": check.said_us,
                "at_first_alarm": check.said_us == min((a["time_usec"] for a in r["alarms"] if a["sensor"] == "mag"),
-                                                      default=None)}}
+                                                      default=None)},
+           "wander_said_live": None if not wander else {
+               "line": wander[0], "after_first_fix_s": round((wanders.said_us - span.fixes[0]) / 1e6, 1)}}
     if ask and r["format"] in ("dataflash", "ulog"):
         out["autopilot_saw"] = autopilot_saw(path, r)
     for spec in attacks:
@@ -336,6 +342,11 @@ def main(argv=None) -> int:
         at_alarm = sum(1 for x in live if x["at_first_alarm"])
         print(f"guard run would say it on {len(live)} ({at_alarm} at the magnetometer's first alarm, the others "
               f"at a minute's fit)")
+    heard = [r["wander_said_live"] for r in results if r.get("wander_said_live")]
+    if heard:
+        after = sorted(x["after_first_fix_s"] for x in heard)
+        print(f"guard run would say its accelerometers wander on {len(heard)} ({after[0] / 60:.1f} to "
+              f"{after[-1] / 60:.1f} min after the first fix, median {after[len(after) // 2] / 60:.1f})")
     if args.autopilot:
         print(f"the autopilot's own EKF saw {saw[0]} of the {saw[1]} GNSS velocity alarms it could be asked about "
               f"too (DataFlash and ULog logs: one of its {SAW_TOP} largest windows of the flight so far, the same "

@@ -32,6 +32,11 @@ autopilot's reboot) starts a new segment: no window spans two; less, the sample 
 left out. The heading is the filter's: a heading a few degrees off turns the
 vehicle's own acceleration by as much (0.05 rad of 1.5 m/s^2: 0.08 m/s^2), so on a hard-flown vehicle
 part of e is guard's heading, not the IMU.
+
+`LiveWander` is the same for `guard run`: every LIVE_CHECK_S of the samples' time it measures the 8 s
+Allan deviation over what it holds (the latest LIVE_KEEP_S, in at most LIVE_SEGMENTS stretches between
+reboots: a daemon's memory stays bounded), and once LIVE_MIN_PAIRS adjacent windows show it over
+WANDER_SAY_MPS2 it says so, once, and lets go of what it held.
 """
 
 from __future__ import annotations
@@ -59,6 +64,10 @@ BACK_S = 1.0            # s an IMU sample's time may go back and be a sample out
                         # back is a reboot, which starts a new segment. A fix more than this from the IMU's
                         # time is on another clock (the one before a reboot) and left out
 TRACK = ("t", "sum_e", "sum_n", "gaps", "cos", "sin")     # a kept row of the integrals
+LIVE_CHECK_S = 60.0     # guard run measures what it holds this often (the samples' time) ...
+LIVE_KEEP_S = 600.0     # ... over the latest this much of it (at most 1.5 MB of integrals) ...
+LIVE_SEGMENTS = 3       # ... in at most this many stretches between reboots
+LIVE_MIN_PAIRS = 10     # adjacent 8 s windows before it says anything (about 90 s of fixes and IMU)
 
 
 class Agreement:
@@ -133,14 +142,10 @@ class Agreement:
         """Per window length: windows measured and left out, the rms of e's length, e as a tilt, its
         Allan deviation and the rms of the GNSS acceleration's length; None where no window could be
         measured at any length (no IMU integrated beside the fixes)."""
-        segments = [r for track, fixes in self.segments if len(r := rows(track, fixes)) >= 2]
+        segments = self._rows()
         out = []
         for w in windows:
-            parts = [discrepancies(r, w) for r in segments]
-            e = np.concatenate([p[0] for p in parts]) if parts else np.zeros((0, 2))
-            acc = np.concatenate([p[1] for p in parts]) if parts else np.zeros((0, 2))
-            left_out = sum(p[2] for p in parts)
-            adjacent = np.concatenate([p[3] for p in parts]) if parts else np.zeros(0, dtype=bool)
+            e, acc, left_out, adjacent = windows_of(segments, w)
             if len(e) == 0:
                 out.append({"window_s": w, "windows": 0, "left_out": left_out})
                 continue
@@ -151,6 +156,75 @@ class Agreement:
                         "allan_mps2": None if adev is None else round(adev, 3),
                         "gnss_accel_rms_mps2": round(float(np.sqrt(np.mean(np.sum(acc ** 2, axis=1)))), 3)})
         return out if any(r["windows"] for r in out) else None
+
+    def _rows(self) -> list[np.ndarray]:
+        """rows() of each segment that has two or more."""
+        return [r for track, fixes in self.segments if len(r := rows(track, fixes)) >= 2]
+
+
+class LiveWander(Agreement):
+    """guard run's wander (a sink): `say(line)` once, where the 8 s Allan deviation over the latest
+    LIVE_KEEP_S passes WANDER_SAY_MPS2 over at least LIVE_MIN_PAIRS adjacent windows (see the module's
+    docstring). `checked`: the last measure, (Allan deviation or None, adjacent pairs)."""
+
+    def __init__(self, say):
+        super().__init__()
+        self.say = say
+        self.done = False
+        self.said_us: int | None = None             # when it said its line (the samples' clock)
+        self.checked: tuple[float | None, int] = (None, 0)
+        self._next_us: int | None = None
+
+    def on_sample(self, s) -> None:
+        if self.done:
+            return
+        super().on_sample(s)
+        if not isinstance(s, ImuSample):
+            return
+        t = s.t_us
+        if self._next_us is None or t < self._next_us - LIVE_CHECK_S * 1e6:     # the first, or a clock gone back
+            self._next_us = t + LIVE_CHECK_S * 1e6
+        elif t >= self._next_us:
+            self._next_us = t + LIVE_CHECK_S * 1e6
+            self.check(t)
+
+    def on_events(self, events) -> None:
+        if not self.done:
+            super().on_events(events)
+
+    def check(self, t_us: int) -> None:
+        """Measure what it holds at t_us (after letting go of what is older than LIVE_KEEP_S); say the
+        line where it shows the wander."""
+        self._trim(t_us / 1e6)
+        e, _, _, adjacent = windows_of(self._rows(), SAY_WINDOW_S)
+        pairs = int(np.count_nonzero(adjacent[1:])) if len(adjacent) else 0
+        self.checked = (allan_deviation(e, adjacent), pairs)
+        adev = self.checked[0]
+        if adev is None or pairs < LIVE_MIN_PAIRS or adev <= WANDER_SAY_MPS2:
+            return
+        self.said_us = t_us
+        self.done = True                            # said once, whatever `say` does
+        self.segments = []
+        self.say(f"accelerometers wander {adev:.2f} m/s^2 from the GNSS over {SAY_WINDOW_S:g} s: a bias of a few "
+                 "tenths is within what this vehicle does, its test rarely tells one apart")
+
+    def _trim(self, t: float) -> None:
+        del self.segments[:-LIVE_SEGMENTS]
+        cutoff = t - LIVE_KEEP_S
+        n = int(np.searchsorted(np.frombuffer(self.track, dtype=float)[0::len(TRACK)], cutoff))
+        del self.track[:n * len(TRACK)]
+        n = int(np.searchsorted(np.frombuffer(self.fixes, dtype=float)[0::3], cutoff))
+        del self.fixes[:n * 3]
+
+
+def windows_of(segments: list[np.ndarray], window_s: float) -> tuple[np.ndarray, np.ndarray, int, np.ndarray]:
+    """discrepancies() over every segment's rows, joined: (e, the GNSS acceleration, windows left out,
+    adjacent), no window across two segments."""
+    parts = [discrepancies(r, window_s) for r in segments]
+    if not parts:
+        return np.zeros((0, 2)), np.zeros((0, 2)), 0, np.zeros(0, dtype=bool)
+    return (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]), sum(p[2] for p in parts),
+            np.concatenate([p[3] for p in parts]))
 
 
 def rows(track: array, fixes: array) -> np.ndarray:

@@ -23,6 +23,7 @@ from guard.errors import ConfigError, SourceError
 from guard.model.samples import GnssFix, ImuSample
 from guard.sources.link import MavlinkLink
 from guard.sources.live import check_url, open_link
+from guard.runtime.agreement import LiveWander
 from guard.runtime.deviation import LiveCheck
 from guard.runtime.pump import Pump
 from guard.runtime.sdnotify import Notifier
@@ -153,6 +154,8 @@ class Daemon:
         self.pump.sinks.append(self.status)
         # a compass that reads off by heading: said once
         self.pump.sinks.append(LiveCheck(lambda line: self._operator(line, keep=True), self.cfg.monitor))
+        # levelled accelerometers that wander from the GNSS: said once (guard.runtime.agreement)
+        self.pump.sinks.append(LiveWander(lambda line: self._operator(line, keep=True)))
         self.out(f"guard: listening on {self.connect}" + (f", logging to {self.mcap_path}" if self.log else ""))
         self.started = True
         self.notifier.ready(f"listening on {self.connect}")

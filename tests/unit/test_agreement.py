@@ -4,6 +4,7 @@ comes out, each axis with its sign, at every window, through the turn; a hole in
 back and values that are not numbers are left out, never measured."""
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -11,7 +12,8 @@ import pytest
 from guard.core.ekf import N_STATES, TH
 from guard.model.events import Estimate
 from guard.model.samples import GnssFix, ImuSample
-from guard.runtime.agreement import Agreement
+from guard.runtime.agreement import (LIVE_CHECK_S, LIVE_KEEP_S, LIVE_MIN_PAIRS, LIVE_SEGMENTS, SAY_WINDOW_S, TRACK,
+                                     WANDER_SAY_MPS2, Agreement, LiveWander)
 
 IMU_HZ, FIX_HZ = 50, 10
 SPEED, YAW_RATE = 6.0, 0.3      # m/s, rad/s (ENU: counter-clockwise): 2.4 rad in 8 s
@@ -25,13 +27,15 @@ def estimate(t_us: int, yaw: float) -> Estimate:
 
 def circle(bias: tuple[float, float], seconds: float = 60.0, t0: float = 0.0, hole: tuple[float, float] = (0, 0),
            nan_at: float | None = None, theta0: float = 0.4):
-    """(sample or None, events) in time order: the IMU at IMU_HZ, a fix and the filter's heading at FIX_HZ."""
+    """(sample or None, events) in time order: the IMU at IMU_HZ, a fix and the filter's heading at FIX_HZ.
+    `bias`: (forward, left), or a function of the time that gives it."""
     out = []
     for i in range(int(seconds * IMU_HZ) + 1):
         t = t0 + i / IMU_HZ
         th = theta0 + YAW_RATE * (t - t0)
         if not hole[0] <= t - t0 < hole[1]:
-            fwd, left = bias[0], SPEED * YAW_RATE + bias[1]        # the centripetal force, to the left
+            b = bias(t) if callable(bias) else bias
+            fwd, left = b[0], SPEED * YAW_RATE + b[1]              # the centripetal force, to the left
             if nan_at is not None and abs(t - t0 - nan_at) < 1e-9:
                 fwd = math.nan
             # FRD body axes: y to the right, z down (a yaw counter-clockwise seen from above: -z)
@@ -117,3 +121,66 @@ def test_a_stale_fix_after_a_reboot_or_a_jittering_imu_loses_nothing_and_a_tiny_
                   if isinstance(t, ImuSample) else (t, s))
     assert len(run(jitter).segments) == 1
     assert run(circle(bias, seconds=10.0)).measure((0.0005,)) is None      # no window that short: and it ends
+
+
+def stepping(size: float, seed: int, every_s: float = 8.0):
+    """A bias that takes a new value, N(0, size) per axis, every every_s."""
+    rng = np.random.default_rng(seed)
+    draws = rng.normal(0.0, size, (1000, 2))
+    return lambda t: tuple(draws[int(t // every_s) % len(draws)])
+
+
+def live(stream, wander=None):
+    """LiveWander fed the stream (or `wander` fed more of it); with the lines it said, all of them."""
+    w = wander or LiveWander(lambda line: w.lines.append(line))
+    if wander is None:
+        w.lines = []
+    for sample, events in stream:
+        w.on_sample(sample)
+        w.on_events(events)
+    return w, w.lines
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_guard_run_says_a_wander_once_after_enough_windows_and_lets_go(seed):
+    """An error that steps every 8 s by 0.5 m/s^2 per axis: not said at the first minute's check (fewer
+    than LIVE_MIN_PAIRS adjacent windows), said at the second with its size near the offline measure's,
+    once; what it held let go, and what comes after not listened to."""
+    stream = circle(stepping(0.5, seed), seconds=130.0)
+    w, said = live(stream)
+    assert len(said) == 1, said
+    assert 100e6 <= w.said_us <= 130e6, w.said_us                  # the second check, at 120 s of the IMU's clock
+    assert w.done and not w.segments and w.checked[1] >= LIVE_MIN_PAIRS
+    heard = [(x, e) for x, e in stream if x.t_us <= w.said_us]     # what it had heard when it said it
+    offline = {r["window_s"]: r for r in run(heard).measure()}[SAY_WINDOW_S]["allan_mps2"]
+    size = float(re.search(r"wander ([0-9.]+) m/s\^2", said[0]).group(1))
+    assert size == pytest.approx(offline, abs=0.01) and size > WANDER_SAY_MPS2
+    w, said = live(circle(stepping(0.5, seed), seconds=130.0, t0=130.0), w)
+    assert len(said) == 1 and not w.segments
+
+
+@pytest.mark.parametrize("bias", [(0.0, 0.0), (0.4, -0.3), "small"])
+def test_guard_run_says_nothing_of_a_constant_or_small_error_and_holds_ten_minutes_at_most(bias):
+    """A constant bias, however large, does not wander; one stepping by 0.05 per axis stays under
+    WANDER_SAY_MPS2. Over 25 minutes the check measures every minute and holds the latest LIVE_KEEP_S."""
+    stream = circle(stepping(0.05, 4) if bias == "small" else bias, seconds=1500.0)
+    w, said = live(stream)
+    assert not said and not w.done
+    adev, pairs = w.checked
+    assert pairs >= 60 and adev < WANDER_SAY_MPS2 / 2, w.checked
+    held = np.frombuffer(w.track, dtype=float)[0::len(TRACK)]
+    assert held[-1] - held[0] <= LIVE_KEEP_S + LIVE_CHECK_S + 1.0, (held[0], held[-1])
+    fixes = np.frombuffer(w.fixes, dtype=float)[0::3]
+    assert fixes[-1] - fixes[0] <= LIVE_KEEP_S + LIVE_CHECK_S + 1.0
+
+
+def test_guard_run_keeps_few_stretches_across_reboots_and_checks_on_the_new_clock():
+    """Ten reboots, each a minute and a half: at most LIVE_SEGMENTS stretches held at a check; a clock that
+    went back is checked a minute after it restarted, and a wander that follows is still said."""
+    stream = []
+    for i in range(10):
+        stream += circle((0.1, 0.0), seconds=90.0, t0=5.0 + 0.01 * i)
+    w, said = live(stream)
+    assert not said and len(w.segments) <= LIVE_SEGMENTS + 1
+    w, said = live(circle(stepping(0.5, 5), seconds=130.0, t0=2.0), w)
+    assert len(said) == 1 and w.said_us >= 2e6 + LIVE_CHECK_S * 1e6, (said, w.checked)
