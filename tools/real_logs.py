@@ -197,6 +197,18 @@ def autopilot_saw(path: str, report: dict) -> list[int] | str:
     return [sum(x is True for x in said), sum(x is not None for x in said)]
 
 
+def since_boot(fixes: list[int], t_us: int) -> float | None:
+    """Seconds from the first fix on t_us's clock (after the last reboot before it: a fix more than a second
+    before the one ahead of it) to t_us; None before any."""
+    start = None
+    for i, t in enumerate(fixes):
+        if t > t_us:
+            break
+        if i == 0 or t < fixes[i - 1] - 1_000_000:
+            start = t
+    return None if start is None else round((t_us - start) / 1e6, 1)
+
+
 def one(job: tuple[str, str | None, tuple[str, ...], tuple[str, ...], bool]) -> dict:
     path, config, sets, attacks, ask = job
     span = Span()
@@ -225,7 +237,7 @@ def one(job: tuple[str, str | None, tuple[str, ...], tuple[str, ...], bool]) -> 
                "at_first_alarm": check.said_us == min((a["time_usec"] for a in r["alarms"] if a["sensor"] == "mag"),
                                                       default=None)},
            "wander_said_live": None if not wander else {
-               "line": wander[0], "after_first_fix_s": round((wanders.said_us - span.fixes[0]) / 1e6, 1)}}
+               "line": wander[0], "after_first_fix_s": since_boot(span.fixes, wanders.said_us)}}
     if ask and r["format"] in ("dataflash", "ulog"):
         out["autopilot_saw"] = autopilot_saw(path, r)
     for spec in attacks:
@@ -344,9 +356,10 @@ def main(argv=None) -> int:
               f"at a minute's fit)")
     heard = [r["wander_said_live"] for r in results if r.get("wander_said_live")]
     if heard:
-        after = sorted(x["after_first_fix_s"] for x in heard)
-        print(f"guard run would say its accelerometers wander on {len(heard)} ({after[0] / 60:.1f} to "
-              f"{after[-1] / 60:.1f} min after the first fix, median {after[len(after) // 2] / 60:.1f})")
+        after = sorted(x["after_first_fix_s"] for x in heard if x["after_first_fix_s"] is not None)
+        when = f" ({after[0] / 60:.1f} to {after[-1] / 60:.1f} min after the first fix on its clock, median " \
+            f"{after[len(after) // 2] / 60:.1f})" if after else ""
+        print(f"guard run would say its accelerometers wander on {len(heard)}{when}")
     if args.autopilot:
         print(f"the autopilot's own EKF saw {saw[0]} of the {saw[1]} GNSS velocity alarms it could be asked about "
               f"too (DataFlash and ULog logs: one of its {SAW_TOP} largest windows of the flight so far, the same "

@@ -34,9 +34,10 @@ vehicle's own acceleration by as much (0.05 rad of 1.5 m/s^2: 0.08 m/s^2), so on
 part of e is guard's heading, not the IMU.
 
 `LiveWander` is the same for `guard run`: every LIVE_CHECK_S of the samples' time it measures the 8 s
-Allan deviation over what it holds (the latest LIVE_KEEP_S, in at most LIVE_SEGMENTS stretches between
-reboots: a daemon's memory stays bounded), and once LIVE_MIN_PAIRS adjacent windows show it over
-WANDER_SAY_MPS2 it says so, once, and lets go of what it held.
+Allan deviation over what it holds (the latest LIVE_KEEP_S of the samples' time, the newest stretch
+first and older ones between reboots for what is left of it, in at most LIVE_SEGMENTS stretches even
+through a boot loop: a daemon's memory stays bounded), and once LIVE_MIN_PAIRS pairs of adjacent
+windows show it over WANDER_SAY_MPS2 it says so, once, and lets go of what it held.
 """
 
 from __future__ import annotations
@@ -65,9 +66,10 @@ BACK_S = 1.0            # s an IMU sample's time may go back and be a sample out
                         # time is on another clock (the one before a reboot) and left out
 TRACK = ("t", "sum_e", "sum_n", "gaps", "cos", "sin")     # a kept row of the integrals
 LIVE_CHECK_S = 60.0     # guard run measures what it holds this often (the samples' time) ...
-LIVE_KEEP_S = 600.0     # ... over the latest this much of it (at most 1.5 MB of integrals) ...
+LIVE_KEEP_S = 600.0     # ... over the latest this much of it, across reboots (1.6 MB of integrals at 50 rows a
+                        # second; up to 12 MB where every sample of a 400 Hz IMU is a gap, each kept) ...
 LIVE_SEGMENTS = 3       # ... in at most this many stretches between reboots
-LIVE_MIN_PAIRS = 10     # adjacent 8 s windows before it says anything (about 90 s of fixes and IMU)
+LIVE_MIN_PAIRS = 10     # pairs of adjacent 8 s windows before it says anything (88 s of fixes and IMU at least)
 
 
 class Agreement:
@@ -164,8 +166,8 @@ class Agreement:
 
 class LiveWander(Agreement):
     """guard run's wander (a sink): `say(line)` once, where the 8 s Allan deviation over the latest
-    LIVE_KEEP_S passes WANDER_SAY_MPS2 over at least LIVE_MIN_PAIRS adjacent windows (see the module's
-    docstring). `checked`: the last measure, (Allan deviation or None, adjacent pairs)."""
+    LIVE_KEEP_S passes WANDER_SAY_MPS2 over at least LIVE_MIN_PAIRS pairs of adjacent windows (see the
+    module's docstring). `checked`: the last measure, (Allan deviation or None, adjacent pairs)."""
 
     def __init__(self, say):
         super().__init__()
@@ -197,24 +199,39 @@ class LiveWander(Agreement):
         line where it shows the wander."""
         self._trim(t_us / 1e6)
         e, _, _, adjacent = windows_of(self._rows(), SAY_WINDOW_S)
-        pairs = int(np.count_nonzero(adjacent[1:])) if len(adjacent) else 0
+        pairs = int(np.count_nonzero(adjacent[1:]))
         self.checked = (allan_deviation(e, adjacent), pairs)
         adev = self.checked[0]
         if adev is None or pairs < LIVE_MIN_PAIRS or adev <= WANDER_SAY_MPS2:
             return
         self.said_us = t_us
         self.done = True                            # said once, whatever `say` does
-        self.segments = []
+        self.segments, self.track, self.fixes = [], array("d"), array("d")
         self.say(f"accelerometers wander {adev:.2f} m/s^2 from the GNSS over {SAY_WINDOW_S:g} s: a bias of a few "
                  "tenths is within what this vehicle does, its test rarely tells one apart")
 
+    def _new_segment(self) -> None:
+        super()._new_segment()
+        del self.segments[:-LIVE_SEGMENTS]          # a boot loop, never reaching a check, holds no more
+
     def _trim(self, t: float) -> None:
-        del self.segments[:-LIVE_SEGMENTS]
-        cutoff = t - LIVE_KEEP_S
-        n = int(np.searchsorted(np.frombuffer(self.track, dtype=float)[0::len(TRACK)], cutoff))
-        del self.track[:n * len(TRACK)]
-        n = int(np.searchsorted(np.frombuffer(self.fixes, dtype=float)[0::3], cutoff))
-        del self.fixes[:n * 3]
+        """Hold the latest LIVE_KEEP_S of the samples' time at t: the newest stretch back from t, then each
+        older one back from its own end, for what is left."""
+        left, kept = LIVE_KEEP_S, []
+        for i, (track, fixes) in enumerate(reversed(self.segments)):
+            times = np.frombuffer(track, dtype=float)[0::len(TRACK)]
+            end = t if i == 0 else (float(times[-1]) if len(times) else -math.inf)
+            if left <= 0.0 or not math.isfinite(end):
+                continue
+            n = int(np.searchsorted(times, end - left))
+            del times
+            del track[:n * len(TRACK)]
+            n = int(np.searchsorted(np.frombuffer(fixes, dtype=float)[0::3], end - left))
+            del fixes[:n * 3]
+            if len(track):
+                left -= end - track[0]
+            kept.append((track, fixes))
+        self.segments[:] = kept[::-1] if kept else self.segments[-1:]
 
 
 def windows_of(segments: list[np.ndarray], window_s: float) -> tuple[np.ndarray, np.ndarray, int, np.ndarray]:

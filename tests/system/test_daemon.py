@@ -33,8 +33,8 @@ from mcap.reader import make_reader                    # noqa: E402
 from pymavlink import mavutil                          # noqa: E402
 
 from guard.config import parse                         # noqa: E402
-from guard.runtime.daemon import Daemon                        # noqa: E402
 from guard.runtime.agreement import LIVE_MIN_PAIRS, WANDER_SAY_MPS2, LiveWander     # noqa: E402
+from guard.runtime.daemon import Daemon                        # noqa: E402
 from guard.runtime.deviation import LiveCheck                  # noqa: E402
 from guard_sim import scenario                               # noqa: E402
 from guard_sim.mavout import Encoder                         # noqa: E402

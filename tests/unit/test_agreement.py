@@ -150,7 +150,7 @@ def test_guard_run_says_a_wander_once_after_enough_windows_and_lets_go(seed):
     w, said = live(stream)
     assert len(said) == 1, said
     assert 100e6 <= w.said_us <= 130e6, w.said_us                  # the second check, at 120 s of the IMU's clock
-    assert w.done and not w.segments and w.checked[1] >= LIVE_MIN_PAIRS
+    assert w.done and not w.segments and not w.track and not w.fixes and w.checked[1] >= LIVE_MIN_PAIRS
     heard = [(x, e) for x, e in stream if x.t_us <= w.said_us]     # what it had heard when it said it
     offline = {r["window_s"]: r for r in run(heard).measure()}[SAY_WINDOW_S]["allan_mps2"]
     size = float(re.search(r"wander ([0-9.]+) m/s\^2", said[0]).group(1))
@@ -174,13 +174,44 @@ def test_guard_run_says_nothing_of_a_constant_or_small_error_and_holds_ten_minut
     assert fixes[-1] - fixes[0] <= LIVE_KEEP_S + LIVE_CHECK_S + 1.0
 
 
-def test_guard_run_keeps_few_stretches_across_reboots_and_checks_on_the_new_clock():
-    """Ten reboots, each a minute and a half: at most LIVE_SEGMENTS stretches held at a check; a clock that
-    went back is checked a minute after it restarted, and a wander that follows is still said."""
+@pytest.mark.parametrize("boot_s", [40.0, 90.0])
+def test_guard_run_keeps_few_stretches_across_reboots_and_checks_on_the_new_clock(boot_s):
+    """Thirty reboots, each under a check's minute (a boot loop) or over it: at most LIVE_SEGMENTS stretches
+    held; a clock that went back is checked a minute after it restarted, and a wander that follows is
+    still said."""
     stream = []
-    for i in range(10):
-        stream += circle((0.1, 0.0), seconds=90.0, t0=5.0 + 0.01 * i)
+    for i in range(30):
+        stream += circle((0.1, 0.0), seconds=boot_s, t0=5.0 + 0.01 * i)
     w, said = live(stream)
-    assert not said and len(w.segments) <= LIVE_SEGMENTS + 1
+    assert not said and len(w.segments) <= LIVE_SEGMENTS
     w, said = live(circle(stepping(0.5, 5), seconds=130.0, t0=2.0), w)
     assert len(said) == 1 and w.said_us >= 2e6 + LIVE_CHECK_S * 1e6, (said, w.checked)
+
+
+@pytest.mark.parametrize("first_s, then_s", [(300.0, 720.0), (480.0, 240.0)])
+def test_guard_run_holds_the_latest_ten_minutes_across_a_reboot(first_s, then_s):
+    """A reboot after first_s, then then_s more: what it holds is the latest LIVE_KEEP_S of the samples'
+    time (up to a check's minute more), the new stretch first and the old one back from its end for
+    what is left, gone once the new one fills it."""
+    stream = circle((0.3, 0.1), seconds=first_s) + circle((0.3, 0.1), seconds=then_s, t0=5.0, theta0=1.0)
+    w, said = live(stream)
+    assert not said
+    spans = [t[-1] - t[0] for track, _ in w.segments if len(t := np.frombuffer(track, dtype=float)[0::len(TRACK)])]
+    assert sum(spans) <= LIVE_KEEP_S + LIVE_CHECK_S + 1.0, spans
+    assert len(spans) == (1 if then_s > LIVE_KEEP_S else 2), spans
+    if len(spans) == 2:
+        assert spans[0] >= LIVE_KEEP_S - then_s - 1.0, spans       # the old stretch's latest part kept
+
+
+def test_guard_run_s_figure_is_that_of_the_latest_ten_minutes():
+    """An error stepping by 0.1 per axis (under WANDER_SAY_MPS2, never said) for 15 minutes, then by
+    0.03: the last check's figure is the offline measure of the ten minutes before it, not of the whole."""
+    stream = circle(lambda t: stepping(0.1, 8)(t) if t < 900.0 else stepping(0.03, 9)(t), seconds=1320.0)
+    w, said = live(stream)
+    assert not said
+    t_check = w._next_us - LIVE_CHECK_S * 1e6
+    latest = [(x, e) for x, e in stream if t_check - LIVE_KEEP_S * 1e6 <= x.t_us <= t_check]
+    offline = {r["window_s"]: r for r in run(latest).measure()}[SAY_WINDOW_S]["allan_mps2"]
+    whole = {r["window_s"]: r for r in run(stream).measure()}[SAY_WINDOW_S]["allan_mps2"]
+    assert w.checked[0] == pytest.approx(offline, abs=0.005) and abs(w.checked[0] - whole) > 0.03, \
+        (w.checked, offline, whole)
