@@ -4,7 +4,7 @@ the profiles are the same (they must be, to the bit).
     python tools/bench_tune.py [LOG ...] [--jobs N] [--minutes 2] [--logs 2]
 
 Without LOGs, --logs clean drives of --minutes each are simulated (scenario `clean`, seeds 1, 2, ...).
-Each side is timed once (a tune is a dozen replays of every log, long enough to time once); the
+Each side is timed once (a tune is 10 or 11 replays of every log, long enough to time once); the
 machines are shared and noisy, so the ratio is the figure to compare, not the times.
 """
 

@@ -45,9 +45,10 @@ from guard's defaults (a vehicle set to "ground" changes the fit, and a file tha
 run another model than the one tuned).
 Logs that hold an attack, or a sensor fault, would teach guard to accept it: give clean ones.
 
-Each step replays every log once (the latency's, every log at every delay), about a dozen replays in
-all; they are independent, so `jobs` processes share them (`guard tune --jobs`, every core by
-default; `Replays`). The profile is the same whatever the number: each replay is the same and the
+Each step replays every log once (the latency's, every log at every delay; the first noise pass takes
+the latency's replays at the delay it chose, the same config), 10 or 11 replays of each log in all;
+they are independent, so `jobs` processes share them (`guard tune --jobs`, every core by default;
+`Replays`). The profile is the same whatever the number: each replay is the same and the
 logs' innovations are summed in the logs' order.
 """
 
@@ -309,11 +310,13 @@ def _tune(logs: list[str], base: Config, say: Callable[[str], None], replays: Re
         sink, _ = pooled(results[i * len(logs):(i + 1) * len(logs)])
         scores.append((gnss_z2(sink), delay))
         say(f"latency {delay:.2f} s: GNSS innovations {math.sqrt(scores[-1][0]):.2f}x the model")
-    cfg = with_filter(base, gnss_delay_s=min(scores)[1])
-    # 2. each sensor's noise
+    best = scores.index(min(scores))
+    cfg = with_filter(base, gnss_delay_s=DELAYS[best])
+    # 2. each sensor's noise; the first pass's replays are the latency's at the delay taken (the same config)
     defaults = FilterConfig()
-    for _ in range(PASSES):
-        sink, _ = measure(logs, cfg, replays=replays)
+    for n in range(PASSES):
+        sink, _ = pooled(results[best * len(logs):(best + 1) * len(logs)]) if n == 0 else \
+            measure(logs, cfg, replays=replays)
         changes = {}
         for sensor, keys in KEYS.items():
             f = sink.factor(sensor)
