@@ -116,6 +116,42 @@ def test_page_threshold_follows_rate_and_false_alarm_budget():
     assert thr1 == (pytest.approx(threshold_for_arl(1000.0 * 3600.0 * 10.0 * 6, 1.5)),) * 3
 
 
+def stamps(kind: str, hz: float = 5.0, n: int = 40) -> list[int]:
+    """A stream's sample times (us): regular; its first sample sent twice, 19 ms apart; a receiver
+    starting, its second sample 1.6 s after the first; or every third sample stamped twice (a burst)."""
+    step = int(1e6 / hz)
+    t = [T0_US + i * step for i in range(n)]
+    if kind == "twice":
+        t = [T0_US, T0_US + 19_000] + [T0_US + i * step for i in range(1, n - 1)]
+    elif kind == "starting":
+        t = [T0_US] + [T0_US + 1_600_000 + i * step for i in range(n - 1)]
+    elif kind == "burst":
+        t = [x for i, x in enumerate(t) for _ in range(2 if i % 3 == 0 else 1)][:n]
+    return t
+
+
+@pytest.mark.parametrize("kind", ["regular", "twice", "starting", "burst"])
+def test_the_thresholds_follow_the_stream_s_own_rate_not_its_first_interval(kind):
+    """A 5 Hz stream, however its first samples came: from its RATE_SAMPLES-th sample on, the CUSUM's and
+    the chi-square's thresholds are those of 5 Hz, and a regular stream's never move from its second."""
+    from guard.core.detectors.base import RATE_SAMPLES
+    from guard.core.detectors.baselines import ChiSquare
+    cfg = DetectorConfig(false_alarm_interval_h=1000.0)
+    page, chi = PageCusum(cfg, n_channels=2), ChiSquare(cfg, n_channels=2)
+    r, S = np.zeros(2), np.eye(2)
+    got = [(page.test("s", t, r, S)[1][0], chi.test("s", t, r, S)[1][0]) for t in stamps(kind)]
+    chi_5hz = [chi.test("regular", t, r, S)[1][0] for t in stamps("regular")][-1]
+    for cusum_h, chi_h in got[RATE_SAMPLES - 1:]:
+        # (the CUSUM's statistic at 0 reports its first member's threshold)
+        assert cusum_h == pytest.approx(page.threshold(5.0)[0]) and chi_h == pytest.approx(chi_5hz), kind
+    if kind == "regular":
+        assert len(set(got[1:])) == 1, "a regular stream's thresholds never move"
+    else:
+        assert got[1][0] != pytest.approx(page.threshold(5.0)[0]), "the first interval alone was off"
+    page.reset()
+    assert page.test("s", T0_US, r, S)[1][0] == pytest.approx(page.threshold(50.0)[0]), "a reset learns it again"
+
+
 def test_page_matches_the_recursion():
     """Statistic, alarms and restarts against Page's two-sided recursion written out here."""
     rng = np.random.default_rng(7)

@@ -21,6 +21,50 @@ class DetectorConfig:
     gate_persist_s: float = 1.0         # gate: ... and rejection for this long raises the alarm
 
 
+GUESS_HZ = 50.0         # a sensor's rate before its second sample
+MAX_HZ = 1000.0         # the most a rate is taken for
+RATE_SAMPLES = 20       # from this many samples on, the rate is 1 / the median of their intervals
+
+
+class TestRate:
+    """Each sensor's sampling rate, as its tests' thresholds need it (their false-alarm budget is per
+    hour, so per sample at that rate): GUESS_HZ before its second sample, then 1 / the first interval,
+    then, from its RATE_SAMPLES-th sample on and for good, 1 / the median of the positive intervals
+    between its first RATE_SAMPLES. The first interval alone is what a regular stream gives from the
+    start; a log's first two samples can come milliseconds apart (a fix sent twice) or seconds apart (a
+    receiver starting), which set a 5 Hz receiver's thresholds as at 52.6 Hz or 0.6 Hz for the whole
+    run on real logs; the median holds the stream's own rate through both, and through a burst."""
+
+    def __init__(self):
+        self._times: dict[str, list[int]] = {}      # sensor -> its first samples' times
+        self._final: set[str] = set()
+
+    def add(self, sensor: str, t_us: int) -> float | None:
+        """The rate at this sample where it has changed (GUESS_HZ at the first sample, then at the
+        first one later than it, and at the RATE_SAMPLES-th), else None."""
+        if sensor in self._final:
+            return None
+        times = self._times.setdefault(sensor, [])
+        times.append(t_us)
+        if len(times) == 1:
+            return GUESS_HZ
+        if len(times) >= RATE_SAMPLES:
+            self._final.add(sensor)
+            del self._times[sensor]
+            steps = sorted(b - a for a, b in zip(times, times[1:]) if b > a)
+            if steps:
+                return min(MAX_HZ, 1e6 / steps[(len(steps) - 1) // 2])
+            return None
+        later = [t for t in times if t > times[0]]
+        if len(later) == 1 and t_us > times[0]:         # the first sample later than the first
+            return min(MAX_HZ, 1e6 / (t_us - times[0]))
+        return None
+
+    def reset(self) -> None:
+        self._times.clear()
+        self._final.clear()
+
+
 class Detector(ABC):
     """One statistic per channel of each sensor's innovation.
 

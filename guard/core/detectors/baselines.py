@@ -7,7 +7,7 @@ from statistics import NormalDist
 
 import numpy as np
 
-from guard.core.detectors.base import DetectorConfig, _Peaks
+from guard.core.detectors.base import DetectorConfig, TestRate, _Peaks
 
 
 class Gate(_Peaks):
@@ -55,18 +55,20 @@ class ChiSquare(_Peaks):
     def __init__(self, cfg: DetectorConfig, n_channels: int):
         self.cfg = cfg
         self.n_tests = n_channels
-        self.h: dict[str, float] = {}
-        self._first_t: dict[str, int] = {}
+        self.h: dict[tuple[str, int], float] = {}
+        self.rate: dict[str, float] = {}
+        self.rates = TestRate()
 
     def _h(self, sensor: str, t_us: int, m: int) -> float:
+        """h from the sensor's rate (TestRate), for m channels."""
+        rate = self.rates.add(sensor, t_us)
+        if rate is not None:
+            self.rate[sensor] = rate
+            self.h = {k: v for k, v in self.h.items() if k[0] != sensor}
         h = self.h.get((sensor, m))
         if h is None:
-            t0 = self._first_t.setdefault(sensor, t_us)
-            rate = 50.0 if t_us <= t0 else min(1000.0, 1e6 / (t_us - t0))
-            p = 1.0 / (self.cfg.false_alarm_interval_h * 3600.0 * rate * self.n_tests)
-            h = chi2_quantile(p, m)
-            if t_us > t0:
-                self.h[(sensor, m)] = h
+            p = 1.0 / (self.cfg.false_alarm_interval_h * 3600.0 * self.rate[sensor] * self.n_tests)
+            h = self.h[(sensor, m)] = chi2_quantile(p, m)
         return h
 
     def test(self, sensor: str, t_us: int, r: np.ndarray, S: np.ndarray):
@@ -84,7 +86,8 @@ class ChiSquare(_Peaks):
 
     def reset(self) -> None:
         self.h.clear()
-        self._first_t.clear()
+        self.rate.clear()
+        self.rates.reset()
 
 
 def chi2_quantile(p: float, dof: int) -> float:

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from guard.core.detectors.base import Detector, DetectorConfig
+from guard.core.detectors.base import Detector, DetectorConfig, TestRate
 
 
 def siegmund_arl(h: float, k: float) -> float:
@@ -63,7 +63,7 @@ class PageCusum(Detector):
         self.n_tests = 2 * n_channels * len(self.ks)    # two sides per channel and member share the budget
         self.state: dict[str, list[_Page]] = {}
         self.h: dict[str, list[float]] = {}
-        self._first_t: dict[str, int] = {}
+        self.rates = TestRate()
         self.peak: dict[str, float] = {}                # sensor -> largest statistic / threshold seen
         self.run_length: dict[str, int] = {}            # sensor -> samples in the last alarm's run: its onset
         self.recent = 0.0                               # largest statistic / threshold since take_peak()
@@ -74,14 +74,11 @@ class PageCusum(Detector):
         return [threshold_for_arl(arl0, k) for k in self.ks]
 
     def _h(self, sensor: str, t_us: int) -> list[float]:
-        """h from the sensor's rate, known at its second sample (a 50 Hz guess before that)."""
-        h = self.h.get(sensor)
-        if h is None:
-            t0 = self._first_t.setdefault(sensor, t_us)
-            if t_us <= t0:
-                return self.threshold(50.0)
-            h = self.h[sensor] = self.threshold(min(1000.0, 1e6 / (t_us - t0)))
-        return h
+        """h from the sensor's rate (TestRate: a guess, its first interval, then its first samples' mean)."""
+        rate = self.rates.add(sensor, t_us)
+        if rate is not None:
+            self.h[sensor] = self.threshold(rate)
+        return self.h[sensor]
 
     def test(self, sensor: str, t_us: int, r: np.ndarray, S: np.ndarray):
         chans = self.state.get(sensor)
@@ -143,4 +140,4 @@ class PageCusum(Detector):
     def reset(self) -> None:
         self.state.clear()
         self.h.clear()
-        self._first_t.clear()
+        self.rates.reset()
