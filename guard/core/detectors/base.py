@@ -32,8 +32,10 @@ class TestRate:
     then, from its RATE_SAMPLES-th sample on and for good, 1 / the median of the positive intervals
     between its first RATE_SAMPLES. The first interval alone is what a regular stream gives from the
     start; a log's first two samples can come milliseconds apart (a fix sent twice) or seconds apart (a
-    receiver starting), which set a 5 Hz receiver's thresholds as at 52.6 Hz or 0.6 Hz for the whole
-    run on real logs; the median holds the stream's own rate through both, and through a burst."""
+    receiver starting), which on real logs set a 5 Hz receiver's thresholds as at 52.6 Hz, and a 1 Hz
+    one's as at 0.6 Hz, for the whole run; the median holds the stream's own rate through both, and
+    through close stamps while they are fewer than half of the intervals. The monitor gives a detector
+    increasing stamps (its time base drops resent and out-of-order samples)."""
 
     def __init__(self):
         self._times: dict[str, list[int]] = {}      # sensor -> its first samples' times

@@ -74,7 +74,7 @@ class PageCusum(Detector):
         return [threshold_for_arl(arl0, k) for k in self.ks]
 
     def _h(self, sensor: str, t_us: int) -> list[float]:
-        """h from the sensor's rate (TestRate: a guess, its first interval, then its first samples' mean)."""
+        """h from the sensor's rate (TestRate: a guess, its first interval, then its first samples' median interval)."""
         rate = self.rates.add(sensor, t_us)
         if rate is not None:
             self.h[sensor] = self.threshold(rate)
