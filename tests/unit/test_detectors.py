@@ -118,7 +118,8 @@ def test_page_threshold_follows_rate_and_false_alarm_budget():
 
 def stamps(kind: str, hz: float = 5.0, n: int = 40) -> list[int]:
     """A stream's sample times (us): regular; its first sample sent twice, 19 ms apart; a receiver
-    starting, its second sample 1.6 s after the first; or every third sample stamped twice (a burst)."""
+    starting, its second sample 1.6 s after the first; or every third sample followed by another 2 ms
+    later (a burst: the monitor's time base drops only stamps that do not increase)."""
     step = int(1e6 / hz)
     t = [T0_US + i * step for i in range(n)]
     if kind == "twice":
@@ -126,30 +127,54 @@ def stamps(kind: str, hz: float = 5.0, n: int = 40) -> list[int]:
     elif kind == "starting":
         t = [T0_US] + [T0_US + 1_600_000 + i * step for i in range(n - 1)]
     elif kind == "burst":
-        t = [x for i, x in enumerate(t) for _ in range(2 if i % 3 == 0 else 1)][:n]
+        t = [x + d for i, x in enumerate(t) for d in ((0, 2_000) if i % 3 == 0 else (0,))][:n]
     return t
+
+
+def chi_threshold(hz: float, cfg: DetectorConfig, dof: int = 2, n_tests: int = 2) -> float:
+    """The chi-square test's threshold at a rate, from its false-alarm budget written out here."""
+    from guard.core.detectors import chi2_quantile
+    return chi2_quantile(1.0 / (cfg.false_alarm_interval_h * 3600.0 * hz * n_tests), dof)
 
 
 @pytest.mark.parametrize("kind", ["regular", "twice", "starting", "burst"])
 def test_the_thresholds_follow_the_stream_s_own_rate_not_its_first_interval(kind):
     """A 5 Hz stream, however its first samples came: from its RATE_SAMPLES-th sample on, the CUSUM's and
-    the chi-square's thresholds are those of 5 Hz, and a regular stream's never move from its second."""
+    the chi-square's thresholds are those of 5 Hz (of 1 / the median interval, 198 ms, in a burst), and a
+    regular stream's never move from its second."""
     from guard.core.detectors.base import RATE_SAMPLES
     from guard.core.detectors.baselines import ChiSquare
     cfg = DetectorConfig(false_alarm_interval_h=1000.0)
     page, chi = PageCusum(cfg, n_channels=2), ChiSquare(cfg, n_channels=2)
     r, S = np.zeros(2), np.eye(2)
     got = [(page.test("s", t, r, S)[1][0], chi.test("s", t, r, S)[1][0]) for t in stamps(kind)]
-    chi_5hz = [chi.test("regular", t, r, S)[1][0] for t in stamps("regular")][-1]
+    hz = 1e6 / 198_000 if kind == "burst" else 5.0
     for cusum_h, chi_h in got[RATE_SAMPLES - 1:]:
         # (the CUSUM's statistic at 0 reports its first member's threshold)
-        assert cusum_h == pytest.approx(page.threshold(5.0)[0]) and chi_h == pytest.approx(chi_5hz), kind
+        assert cusum_h == pytest.approx(page.threshold(hz)[0]), kind
+        assert chi_h == pytest.approx(chi_threshold(hz, cfg)), kind
     if kind == "regular":
         assert len(set(got[1:])) == 1, "a regular stream's thresholds never move"
     else:
-        assert got[1][0] != pytest.approx(page.threshold(5.0)[0]), "the first interval alone was off"
+        assert got[1][0] != pytest.approx(page.threshold(hz)[0]), "the first interval alone was off"
     page.reset()
+    chi.reset()
     assert page.test("s", T0_US, r, S)[1][0] == pytest.approx(page.threshold(50.0)[0]), "a reset learns it again"
+    assert chi.test("s", T0_US, r, S)[1][0] == pytest.approx(chi_threshold(50.0, cfg)), "a reset learns it again"
+
+
+def test_a_stream_s_rate_is_capped_and_kept_without_a_later_stamp():
+    """Stamps 100 us apart are held at MAX_HZ; a stream whose stamps never increase keeps GUESS_HZ."""
+    from guard.core.detectors.base import GUESS_HZ, MAX_HZ, RATE_SAMPLES, TestRate
+    rates = TestRate()
+    fast = [rates.add("fast", T0_US + 100 * i) for i in range(RATE_SAMPLES + 5)]
+    assert [x for x in fast if x is not None] == [GUESS_HZ, MAX_HZ, MAX_HZ]
+    still = [rates.add("still", T0_US) for _ in range(RATE_SAMPLES + 5)]
+    assert [x for x in still if x is not None] == [GUESS_HZ]
+    cfg = DetectorConfig(false_alarm_interval_h=1000.0)
+    page = PageCusum(cfg, n_channels=2)
+    thr = [page.test("still", T0_US, np.zeros(2), np.eye(2))[1][0] for _ in range(RATE_SAMPLES + 5)]
+    assert thr == [pytest.approx(page.threshold(GUESS_HZ)[0])] * len(thr)
 
 
 def test_page_matches_the_recursion():
