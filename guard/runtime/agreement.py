@@ -51,6 +51,7 @@ from guard.core.aiding.imu import level
 from guard.core.aiding.tilt import Tilt
 from guard.core.ekf import TH
 from guard.model.events import Estimate
+from guard.runtime.every import Every
 from guard.model.samples import Attitude, GnssFix, ImuSample
 
 G = 9.80665
@@ -167,7 +168,7 @@ class Agreement:
 class LiveWander(Agreement):
     """guard run's wander (a sink): `say(line)` once, where the 8 s Allan deviation over the latest
     LIVE_KEEP_S passes WANDER_SAY_MPS2 over at least LIVE_MIN_PAIRS pairs of adjacent windows (see the
-    module's docstring). `checked`: the last measure, (Allan deviation or None, adjacent pairs)."""
+    module's docstring). `checked`: the last measure, (Allan deviation or None, adjacent pairs), made at `checked_us`."""
 
     def __init__(self, say):
         super().__init__()
@@ -175,7 +176,8 @@ class LiveWander(Agreement):
         self.done = False
         self.said_us: int | None = None             # when it said its line (the samples' clock)
         self.checked: tuple[float | None, int] = (None, 0)
-        self._next_us: int | None = None
+        self.checked_us: int | None = None
+        self._every = Every(LIVE_CHECK_S)
 
     def on_sample(self, s) -> None:
         if self.done:
@@ -183,12 +185,8 @@ class LiveWander(Agreement):
         super().on_sample(s)
         if not isinstance(s, ImuSample):
             return
-        t = s.t_us
-        if self._next_us is None or t < self._next_us - LIVE_CHECK_S * 1e6:     # the first, or a clock gone back
-            self._next_us = t + LIVE_CHECK_S * 1e6
-        elif t >= self._next_us:
-            self._next_us = t + LIVE_CHECK_S * 1e6
-            self.check(t)
+        if self._every.due(s.t_us):
+            self.check(s.t_us)
 
     def on_events(self, events) -> None:
         if not self.done:
@@ -200,7 +198,7 @@ class LiveWander(Agreement):
         self._trim(t_us / 1e6)
         e, _, _, adjacent = windows_of(self._rows(), SAY_WINDOW_S)
         pairs = int(np.count_nonzero(adjacent[1:]))
-        self.checked = (allan_deviation(e, adjacent), pairs)
+        self.checked, self.checked_us = (allan_deviation(e, adjacent), pairs), t_us
         adev = self.checked[0]
         if adev is None or pairs < LIVE_MIN_PAIRS or adev <= WANDER_SAY_MPS2:
             return

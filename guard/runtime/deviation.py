@@ -51,6 +51,7 @@ from guard.core.aiding.tilt import Tilt
 from guard.core.monitor import MonitorConfig
 from guard.core.timebase import Timebase
 from guard.model.events import Alarm
+from guard.runtime.every import Every
 from guard.model.samples import Attitude, ImuSample
 from guard.model.sensors import Sensor
 
@@ -362,7 +363,7 @@ class LiveCheck(Headings):
         self.before: dict | None = None             # the fit before the magnetometer's first alarm
         self.first_alarm: int | None = None         # ... and its GNSS sample k
         self.said_us: int | None = None             # when it said its line (the samples' clock)
-        self._next_us: int | None = None
+        self._every = Every(CHECK_S)
 
     def on_sample(self, sample) -> None:
         if self.done:
@@ -370,12 +371,8 @@ class LiveCheck(Headings):
         super().on_sample(sample)
         if not self.taken:
             return
-        t = sample.t_us
-        if self._next_us is None or t < self._next_us - CHECK_S * 1e6:     # the first, or a clock gone back
-            self._next_us = t + CHECK_S * 1e6
-        elif t >= self._next_us:
-            self._next_us = t + CHECK_S * 1e6
-            self.check(t)
+        if self._every.due(sample.t_us):
+            self.check(sample.t_us)
 
     def on_events(self, events) -> None:
         if self.done or self.first_alarm is not None:

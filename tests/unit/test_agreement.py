@@ -209,9 +209,21 @@ def test_guard_run_s_figure_is_that_of_the_latest_ten_minutes():
     stream = circle(lambda t: stepping(0.1, 8)(t) if t < 900.0 else stepping(0.03, 9)(t), seconds=1320.0)
     w, said = live(stream)
     assert not said
-    t_check = w._next_us - LIVE_CHECK_S * 1e6
+    t_check = w.checked_us
     latest = [(x, e) for x, e in stream if t_check - LIVE_KEEP_S * 1e6 <= x.t_us <= t_check]
     offline = {r["window_s"]: r for r in run(latest).measure()}[SAY_WINDOW_S]["allan_mps2"]
     whole = {r["window_s"]: r for r in run(stream).measure()}[SAY_WINDOW_S]["allan_mps2"]
     assert w.checked[0] == pytest.approx(offline, abs=0.005) and abs(w.checked[0] - whole) > 0.03, \
         (w.checked, offline, whole)
+
+
+def test_a_check_comes_once_a_period_of_the_samples_time_and_starts_again_after_a_reboot():
+    """Every: due once per period of sample time (not per sample, not per second of the wall); a clock
+    gone back by more than a period (a reboot) starts the period again, one gone back less does not."""
+    from guard.runtime.every import Every
+    every = Every(60.0)
+    due = [t for t in range(0, 200_000_000, 500_000) if every.due(t)]
+    assert due == [60_000_000, 120_000_000, 180_000_000]
+    assert not every.due(150_000_000) and every.due(240_000_000), "a sample out of order: the period holds"
+    assert not every.due(1_000_000) and not every.due(60_000_000) and every.due(61_000_000), \
+        "after a reboot the period starts at its first sample"
