@@ -48,6 +48,7 @@ import tomllib                                       # noqa: E402
 
 from guard.config import parse, read                 # noqa: E402
 from guard.errors import GuardError                  # noqa: E402
+from guard.core.aiding.motors import OPEN_S          # noqa: E402
 from guard.core.geo import LocalFrame                # noqa: E402
 from guard.model.samples import GnssFix, ImuSample   # noqa: E402
 from guard.runtime.agreement import LiveWander                                         # noqa: E402
@@ -209,6 +210,18 @@ def since_boot(fixes: list[int], t_us: int) -> float | None:
     return None if start is None else round((t_us - start) / 1e6, 1)
 
 
+def after_motors(report: dict) -> list[float | None]:
+    """Each new alarm's time (s) after the latest motors' start heard in the IMU before it (None: none
+    was heard before it): how many alarms the take-off brings (guard.core.aiding.motors)."""
+    starts = [n["time_usec"] for n in report["notices"] if n["text"].startswith("the motors started")]
+    out = []
+    for a in report["alarms"]:
+        if not a["standing"]:
+            before = [a["time_usec"] - t for t in starts if t <= a["time_usec"]]
+            out.append(round(min(before) / 1e6, 1) if before else None)
+    return out
+
+
 def one(job: tuple[str, str | None, tuple[str, ...], tuple[str, ...], bool]) -> dict:
     path, config, sets, attacks, ask = job
     span = Span()
@@ -229,7 +242,7 @@ def one(job: tuple[str, str | None, tuple[str, ...], tuple[str, ...], bool]) -> 
            "n_standing": sum(1 for a in r["alarms"] if a["standing"]), "peak_ratio": r["peak_ratio"],
            "estimate_to_fix_m": r["estimate_to_fix_m"],
            "warnings": [n["text"] for n in r["notices"] if n["level"] == "warning"], "attacks": {},
-           "receiver_jump_m": round(span.jump, 2),
+           "receiver_jump_m": round(span.jump, 2), "new_after_motors_s": after_motors(r),
            "compass_deviation": {**iron, **({"before_first_alarm": before} if before else {})},
            "compass_said": said(iron, before, first_s),
            "compass_said_live": None if not live else {
@@ -354,6 +367,12 @@ def main(argv=None) -> int:
         at_alarm = sum(1 for x in live if x["at_first_alarm"])
         print(f"guard run would say it on {len(live)} ({at_alarm} at the magnetometer's first alarm, the others "
               f"at a minute's fit)")
+    since = [x for r in results for x in r.get("new_after_motors_s", [])]
+    if since:
+        near = [x for x in since if x is not None and x < OPEN_S]
+        print(f"{len(near)} of the {len(since)} new alarms came within {OPEN_S:g} s of a motors' start heard in the "
+              f"IMU ({sum(1 for x in near if x < 10.0)} within 10 s), {sum(1 for x in since if x is None)} before "
+              "any was heard")
     heard = [r["wander_said_live"] for r in results if r.get("wander_said_live")]
     if heard:
         after = sorted(x["after_first_fix_s"] for x in heard if x["after_first_fix_s"] is not None)
