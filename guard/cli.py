@@ -28,11 +28,13 @@ def _replay(args) -> int:
     cfg = _with_system_id(cfg, args.system_id)
     from guard.runtime.agreement import Agreement, said as wander_said
     from guard.runtime.deviation import Headings, compass_fits, said
+    from guard.runtime.position_wander import PositionWander, said as position_said
     from guard.sinks.timeline import Timeline
     headings = Headings(cfg=cfg.monitor)    # the compass against the gyro over the whole log
     timeline = Timeline()                   # what the core said, in order
     agreement = Agreement()                 # the levelled accelerometers against the GNSS velocity
-    listeners = [headings, timeline, agreement]
+    position = PositionWander(cfg.monitor.filter)   # the receiver's position against its own velocity
+    listeners = [headings, timeline, agreement, position]
     trace = Trace() if args.plot else None
     if trace:
         listeners.append(trace)
@@ -51,6 +53,7 @@ def _replay(args) -> int:
     iron, before, first_s = compass_fits(headings, report)
     report["compass_deviation"] = {**iron, **({"before_first_alarm": before} if before else {})}
     report["accelerometer_wander"] = agreement.measure()
+    report["position_wander"] = position.measure()
     if args.report:
         write_report(report, args.report)
     if args.plot:
@@ -79,6 +82,8 @@ def _replay(args) -> int:
         if line := said(iron, before, first_s):
             print(f"  {line}")
         if line := wander_said(report["accelerometer_wander"]):
+            print(f"  {line}")
+        if line := position_said(report["position_wander"]):
             print(f"  {line}")
         for reason, n in sorted(report["skipped"].items(), key=lambda kv: -kv[1]):
             print(f"  skipped {n} {SKIPPED.get(reason, reason.replace('_', ' '))}")

@@ -1,0 +1,147 @@
+"""How far a receiver's positions wander against its own velocity, and what guard's model allows.
+
+A receiver's position and velocity come from different measurements (code ranges and Doppler): over
+T seconds, its position's change less the integral of its velocity is the slow part of its position
+error, which no IMU is needed to see. `PositionWander` (a sink of samples) keeps the fixes guard reads
+and measures its structure function per axis,
+
+    D(T) = sqrt(E[d^2] / 2),  d = (p(t+T) - p(t)) - integral of v from t to t+T,
+
+against what guard's model of each fix allows for it: its white noise sigma plus the position's random
+walk q_pos_m (both as guard.core.aiding.gnss reads the fix), D(T)^2 = sigma^2 + q^2 T / 2. The
+position's small-shift test (k = 0.5, about BLOCK fixes: 8 s at 5 Hz) sums what wanders on that time
+scale, so the ratio at SAY_LAG_S is the one `guard replay` says, and past SAY_RATIO it says what it
+means: the receiver's own wander is what its position alarms may be. On the 47 public flights of the
+README, 6 of the 9 past 1.5 raised a position alarm (13 of the 21) and 3 of the other 38 did (8); on 23
+public logs that no figure of guard was set on, 2 of 3 (11 alarms) and none of 20 (`python
+tools/receiver_wander.py FOLDERS` beside `python tools/real_logs.py FOLDERS`). Its growth from 10 to 80 s tells the kind of error: an
+exponent of 0.5 is a random walk (the model's), 1 a drift held for tens of seconds, 0 a bounded one.
+
+Fixes without a velocity are left out, and no velocity is integrated across a gap over MAX_GAP_S or a
+clock gone back (a reboot starts a new stretch). The fixes are kept for the whole log (6 numbers a fix:
+2 MB an hour at 10 Hz); `guard run` does not measure it.
+"""
+
+from __future__ import annotations
+
+import math
+from array import array
+
+import numpy as np
+
+from guard.core.aiding.gnss import GnssAiding
+from guard.core.ekf import FilterConfig
+from guard.core.geo import LocalFrame
+from guard.model.samples import GnssFix
+
+LAGS_S = (1.0, 2.0, 5.0, 10.0, 20.0, 40.0, 80.0, 160.0)
+MAX_GAP_S = 2.0         # s between fixes past which the velocity is not integrated across
+LAG_SLACK_S = 0.3       # s: a pair of fixes counts for lag T if they are T apart within this
+MIN_PAIRS = 20          # pairs of fixes for a lag's figure
+SAY_LAG_S = 10.0        # the lag guard replay says (the small-shift test's time scale)
+SAY_RATIO = 1.5         # past this many times the model's, it says what the wander means
+SHORT_S, LONG_S = 10.0, 80.0   # the lags whose ratio gives the growth's exponent
+
+
+class PositionWander:
+    """A sink: the fixes guard reads with a velocity, and their wander (`measure`)."""
+
+    needs_tests = False
+
+    def __init__(self, filter_cfg: FilterConfig | None = None):
+        self.aid = GnssAiding(filter_cfg or FilterConfig())
+        self.frame: LocalFrame | None = None
+        self.rows = array("d")          # t (s), east, north (m), v_e, v_n (m/s), stretch
+        self.sigma = array("d")         # the model's white noise and random walk of each fix
+        self.q = array("d")
+        self._stretch = 0
+        self._t: float | None = None
+
+    def on_sample(self, s) -> None:
+        if not (isinstance(s, GnssFix) and s.fix_ok and s.vel_n_mps is not None and s.vel_e_mps is not None):
+            return
+        t = s.t_us / 1e6
+        if self._t is not None and t <= self._t:
+            if t > self._t - MAX_GAP_S:             # resent or out of order: left out
+                return
+            self._stretch += 1                      # the clock went back: a reboot
+        self._t = t
+        if self.frame is None:
+            self.frame = LocalFrame(s.lat_deg, s.lon_deg, 0.0)
+        e, n = self.frame.to_en(s.lat_deg, s.lon_deg)
+        self.rows.extend((t, e, n, s.vel_e_mps, s.vel_n_mps, self._stretch))
+        self.sigma.append(self.aid.sigma_pos(s))
+        self.q.append(self.aid.q_pos(s))
+
+    def on_events(self, events) -> None:
+        pass
+
+    def measure(self, lags=LAGS_S) -> dict | None:
+        """{"fixes", "rate_hz", "speed_mps", "sigma_m", "q_pos_m", "lags": [{"lag_s", "wander_m",
+        "model_m"}], "exponent"?}, or None with fewer than MIN_PAIRS fixes."""
+        if len(self.sigma) < MIN_PAIRS:
+            return None
+        a = np.frombuffer(self.rows, dtype=float).reshape(-1, 6)
+        d = structure(a[:, 0], a[:, 1:3], a[:, 3:5], a[:, 5], lags)
+        sigma, q = float(np.median(self.sigma)), float(np.median(self.q))
+        dt = np.diff(a[:, 0])
+        out = {"fixes": len(a), "rate_hz": round(1.0 / float(np.median(dt[dt > 0])), 1) if np.any(dt > 0) else None,
+               "speed_mps": round(float(np.median(np.hypot(a[:, 3], a[:, 4]))), 2),
+               "sigma_m": round(sigma, 3), "q_pos_m": round(q, 3),
+               "lags": [{"lag_s": lag, "wander_m": round(x, 3), "model_m": round(model(sigma, q, lag), 3)}
+                        for lag, x in d.items()]}
+        if d.get(SHORT_S) and LONG_S in d:
+            out["exponent"] = round(math.log(d[LONG_S] / d[SHORT_S]) / math.log(LONG_S / SHORT_S), 2)
+        return out
+
+
+def structure(t: np.ndarray, en: np.ndarray, v: np.ndarray, stretch: np.ndarray | None = None,
+              lags=LAGS_S) -> dict[float, float]:
+    """D(T) (m, per axis) of position less its velocity's integral, for each lag with MIN_PAIRS pairs of
+    fixes T apart within one stretch (of one clock, without a gap over MAX_GAP_S). t increasing within
+    each stretch."""
+    stretch = np.zeros(len(t)) if stretch is None else np.asarray(stretch)
+    dt = np.diff(t)
+    inc = 0.5 * (v[1:] + v[:-1]) * dt[:, None]
+    broken = (dt > MAX_GAP_S) | (dt <= 0.0) | (np.diff(stretch) != 0)
+    inc[broken] = 0.0
+    slow = en - np.vstack([[0.0, 0.0], np.cumsum(inc, axis=0)])
+    piece = np.concatenate([[0], np.cumsum(broken)])
+    out = {}
+    for lag in lags:
+        j = np.empty(len(t), dtype=int)
+        for p in np.unique(piece):          # pairs within one piece, found by its own times
+            idx = np.nonzero(piece == p)[0]
+            j[idx] = idx[0] + np.searchsorted(t[idx], t[idx] + lag - LAG_SLACK_S)
+        i = np.nonzero(j < len(t))[0]
+        j = j[i]
+        pair = (piece[i] == piece[j]) & (np.abs(t[j] - t[i] - lag) <= LAG_SLACK_S)
+        if np.count_nonzero(pair) < MIN_PAIRS:
+            continue
+        d = slow[j[pair]] - slow[i[pair]]
+        out[lag] = float(math.sqrt(np.mean(d * d) / 2.0))
+    return out
+
+
+def model(sigma: float, q: float, lag: float) -> float:
+    """D(T) of white noise sigma plus a random walk q (m/sqrt(s)), per axis."""
+    return math.sqrt(sigma * sigma + q * q * lag / 2.0)
+
+
+def ratio_at(result: dict | None, lag: float = SAY_LAG_S) -> float | None:
+    """The wander over the model's at a lag (None where it was not measured)."""
+    return next((r["wander_m"] / r["model_m"] for r in (result or {}).get("lags", ()) if r["lag_s"] == lag), None)
+
+
+def said(result: dict | None) -> str | None:
+    """guard replay's line: the wander at SAY_LAG_S against the model's, and what it means past SAY_RATIO."""
+    at = next((r for r in (result or {}).get("lags", ()) if r["lag_s"] == SAY_LAG_S), None)
+    if at is None:
+        return None
+    ratio = at["wander_m"] / at["model_m"]
+    line = (f"the receiver's position against its own velocity: it wanders {at['wander_m']:.2f} m over "
+            f"{SAY_LAG_S:g} s (per axis), {ratio:.1f} times what guard's model of it allows")
+    if ratio > SAY_RATIO:
+        line += (": its position alarms may be its own wander (guard tune fits the model's random walk, "
+                 "filter.q_pos_m, to its clean logs)")
+    return line

@@ -1,0 +1,89 @@
+"""guard.runtime.position_wander: a receiver's position less its own velocity's integral, measured
+against known errors written here (white, a random walk, a drift), on a moving vehicle whose velocity
+the integral must take out, and across a gap and a reboot; and the line guard replay says."""
+
+import math
+
+import numpy as np
+import pytest
+
+from guard.core.ekf import FilterConfig
+from guard.model.samples import GnssFix
+from guard.runtime.position_wander import (MIN_PAIRS, SAY_LAG_S, SAY_RATIO, PositionWander, model, ratio_at, said,
+                                           structure)
+
+HZ = 5.0
+LAT0, LON0 = 47.397742, 8.545594
+
+
+def series(seconds, error, speed=(3.0, -2.0), seed=0):
+    """t, the true track plus error(t, rng) (m, east north), and the true velocity (exact)."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, seconds, 1.0 / HZ)
+    v = np.tile(speed, (len(t), 1))
+    return t, v * t[:, None] + error(t, rng), v
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_white_noise_reads_its_sigma_a_random_walk_its_q_and_a_drift_grows_as_the_lag(seed):
+    n = int(2000 * HZ)
+    t, en, v = series(2000.0, lambda t, rng: rng.normal(0.0, 0.4, (len(t), 2)), seed=seed)
+    for lag, d in structure(t, en, v).items():
+        assert d == pytest.approx(0.4, rel=0.08), lag
+    q = 0.3
+    t, en, v = series(2000.0, lambda t, rng: np.cumsum(rng.normal(0.0, q / math.sqrt(HZ), (n, 2)), axis=0),
+                      seed=seed)
+    for lag, d in structure(t, en, v).items():
+        assert d == pytest.approx(q * math.sqrt(lag / 2.0), rel=0.25), lag
+    t, en, v = series(2000.0, lambda t, rng: 0.05 * t[:, None] * np.array([1.0, -1.0]) +
+                      rng.normal(0.0, 0.01, (len(t), 2)), seed=seed)
+    d = structure(t, en, v)
+    assert d[80.0] / d[10.0] == pytest.approx(8.0, rel=0.05), "a drift grows as the lag"
+
+
+def test_pairs_across_a_gap_or_a_reboot_are_not_taken():
+    """Two stretches whose positions jump 50 m apart (a reboot, or a gap over MAX_GAP_S): within each
+    the receiver is exact, and no pair spans the two."""
+    t, en, v = series(100.0, lambda t, rng: np.zeros((len(t), 2)))
+    half = len(t) // 2
+    en[half:] += 50.0
+    stretch = np.r_[np.zeros(half), np.ones(len(t) - half)]
+    assert max(structure(t, en, v, stretch).values()) < 1e-9
+    gapped = t.copy()
+    gapped[half:] += 5.0
+    assert max(structure(gapped, en, v).values()) < 1e-9
+    assert structure(t[:MIN_PAIRS], en[:MIN_PAIRS], v[:MIN_PAIRS]) == {}, "too few pairs: no figure"
+
+
+def fixes(seconds, error, h_acc=0.8, seed=0):
+    t, en, v = series(seconds, error, seed=seed)
+    out = []
+    for ti, (e, n), (ve, vn) in zip(t, en, v):
+        lat = LAT0 + n / 111_195.0
+        lon = LON0 + e / (111_195.0 * math.cos(math.radians(LAT0)))
+        out.append(GnssFix(int(1e6 + ti * 1e6), True, lat, lon, 500.0, vn, ve, h_acc, 0.1))
+    return out
+
+
+def test_the_sink_measures_what_the_fixes_carry_and_says_a_wander_past_the_model():
+    """A receiver that wanders as a random walk of 0.4 m/sqrt(s) against a model of 0.1: past SAY_RATIO
+    at 10 s and said so; one as exact as the model's white noise alone is not; a resent fix and one
+    out of order change nothing."""
+    walk = PositionWander()
+    stream = fixes(600.0, lambda t, rng: np.cumsum(rng.normal(0.0, 0.4 / math.sqrt(HZ), (len(t), 2)), axis=0),
+                   seed=4)
+    for s in stream[:100] + [stream[99], stream[97]] + stream[100:]:     # resent, then out of order
+        walk.on_sample(s)
+    got = walk.measure()
+    sigma, q = FilterConfig().gnss_pos_sigma_m, FilterConfig().q_pos_m
+    assert got["fixes"] == len(stream) and got["q_pos_m"] == q and got["sigma_m"] == sigma
+    assert ratio_at(got) > SAY_RATIO
+    at = next(r for r in got["lags"] if r["lag_s"] == SAY_LAG_S)
+    assert at["model_m"] == pytest.approx(model(sigma, q, SAY_LAG_S), abs=1e-3)
+    assert at["wander_m"] == pytest.approx(0.4 * math.sqrt(SAY_LAG_S / 2.0), rel=0.3)
+    assert "may be its own wander" in said(got)
+    quiet = PositionWander()
+    for s in fixes(600.0, lambda t, rng: rng.normal(0.0, 0.1, (len(t), 2))):
+        quiet.on_sample(s)
+    assert ratio_at(quiet.measure()) < 1.0 and "may be its own wander" not in said(quiet.measure())
+    assert PositionWander().measure() is None and said(None) is None
