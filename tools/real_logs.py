@@ -52,6 +52,7 @@ from guard.core.aiding.motors import OPEN_S          # noqa: E402
 from guard.core.geo import LocalFrame                # noqa: E402
 from guard.model.samples import GnssFix, ImuSample   # noqa: E402
 from guard.runtime.agreement import LiveWander                                         # noqa: E402
+from guard.runtime.position_wander import LivePositionWander                           # noqa: E402
 from guard.runtime.deviation import SAY_DEG, Headings, LiveCheck, compass_fits, said   # noqa: E402
 from guard.runtime.replay import replay              # noqa: E402
 import pymap3d                                       # noqa: E402
@@ -232,7 +233,9 @@ def one(job: tuple[str, str | None, tuple[str, ...], tuple[str, ...], bool]) -> 
         check = LiveCheck(live.append, cfg.monitor)
         wander: list[str] = []                              # ... and of the accelerometers' wander
         wanders = LiveWander(wander.append)
-        r = replay(path, cfg, listeners=[span, headings, check, wanders])
+        position: list[str] = []                            # ... and of the receiver's position
+        positions = LivePositionWander(position.append, cfg.monitor.filter)
+        r = replay(path, cfg, listeners=[span, headings, check, wanders, positions])
     except GuardError as e:
         return {"log": path, "error": str(e)}
     iron, before, first_s = compass_fits(headings, r)       # as guard replay fits it
@@ -250,7 +253,9 @@ def one(job: tuple[str, str | None, tuple[str, ...], tuple[str, ...], bool]) -> 
                "at_first_alarm": check.said_us == min((a["time_usec"] for a in r["alarms"] if a["sensor"] == "mag"),
                                                       default=None)},
            "wander_said_live": None if not wander else {
-               "line": wander[0], "after_first_fix_s": since_boot(span.fixes, wanders.said_us)}}
+               "line": wander[0], "after_first_fix_s": since_boot(span.fixes, wanders.said_us)},
+           "position_said_live": None if not position else {
+               "line": position[0], "after_first_fix_s": since_boot(span.fixes, positions.said_us)}}
     if ask and r["format"] in ("dataflash", "ulog"):
         out["autopilot_saw"] = autopilot_saw(path, r)
     for spec in attacks:
@@ -379,6 +384,12 @@ def main(argv=None) -> int:
         when = f" ({after[0] / 60:.1f} to {after[-1] / 60:.1f} min after the first fix on its clock, median " \
             f"{after[len(after) // 2] / 60:.1f})" if after else ""
         print(f"guard run would say its accelerometers wander on {len(heard)}{when}")
+    heard = [r["position_said_live"] for r in results if r.get("position_said_live")]
+    if heard:
+        after = sorted(x["after_first_fix_s"] for x in heard if x["after_first_fix_s"] is not None)
+        when = f" ({after[0] / 60:.1f} to {after[-1] / 60:.1f} min after the first fix on its clock, median " \
+            f"{after[len(after) // 2] / 60:.1f})" if after else ""
+        print(f"guard run would say its receiver's position wanders past the model on {len(heard)}{when}")
     if args.autopilot:
         print(f"the autopilot's own EKF saw {saw[0]} of the {saw[1]} GNSS velocity alarms it could be asked about "
               f"too (DataFlash and ULog logs: one of its {SAW_TOP} largest windows of the flight so far, the same "

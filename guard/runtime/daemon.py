@@ -25,6 +25,7 @@ from guard.sources.link import MavlinkLink
 from guard.sources.live import check_url, open_link
 from guard.runtime.agreement import LiveWander
 from guard.runtime.deviation import LiveCheck
+from guard.runtime.position_wander import LivePositionWander
 from guard.runtime.pump import Pump
 from guard.runtime.sdnotify import Notifier
 from guard.sinks.mcap import UNIX_2001_US, McapLog
@@ -156,6 +157,10 @@ class Daemon:
         self.pump.sinks.append(LiveCheck(lambda line: self._operator(line, keep=True), self.cfg.monitor))
         # levelled accelerometers that wander from the GNSS: said once (guard.runtime.agreement)
         self.pump.sinks.append(LiveWander(lambda line: self._operator(line, keep=True)))
+        # a receiver whose position wanders from its own velocity past the model: said once
+        # (guard.runtime.position_wander)
+        self.pump.sinks.append(LivePositionWander(lambda line: self._operator(line, keep=True),
+                                                  self.cfg.monitor.filter))
         self.out(f"guard: listening on {self.connect}" + (f", logging to {self.mcap_path}" if self.log else ""))
         self.started = True
         self.notifier.ready(f"listening on {self.connect}")

@@ -18,8 +18,13 @@ tools/receiver_wander.py FOLDERS` beside `python tools/real_logs.py FOLDERS`). I
 exponent of 0.5 is a random walk (the model's), 1 a drift held for tens of seconds, 0 a bounded one.
 
 Fixes without a velocity are left out, and no velocity is integrated across a gap over MAX_GAP_S or a
-clock gone back (a reboot starts a new stretch). The fixes are kept for the whole log (6 numbers a fix:
-2 MB an hour at 10 Hz); `guard run` does not measure it.
+clock gone back (a reboot starts a new stretch). Each fix's step from the one before is taken in the
+plane tangent at that one, where the receiver's velocity is: one plane for a whole flight turns its far
+end by its distance over the earth's radius (0.5 mrad at 3 km), which over 10 s at 20 m/s is 10 cm. `PositionWander` keeps the fixes of the whole log (8
+numbers a fix: 2.3 MB an hour at 10 Hz). `guard run` says it too, once (`LivePositionWander`): every
+LIVE_CHECK_S of the samples' time it measures the latest LIVE_KEEP_S of fixes (the newest stretch
+first, at most LIVE_SEGMENTS of them across reboots), and speaks once they span LIVE_MIN_SPAN_S and
+read past SAY_RATIO at SAY_LAG_S; then it lets go of them.
 """
 
 from __future__ import annotations
@@ -33,6 +38,7 @@ from guard.core.aiding.gnss import GnssAiding
 from guard.core.ekf import FilterConfig
 from guard.core.geo import LocalFrame
 from guard.model.samples import GnssFix
+from guard.runtime.every import Every
 
 LAGS_S = (1.0, 2.0, 5.0, 10.0, 20.0, 40.0, 80.0, 160.0)
 MAX_GAP_S = 2.0         # s between fixes past which the velocity is not integrated across
@@ -41,6 +47,11 @@ MIN_PAIRS = 20          # pairs of fixes for a lag's figure
 SAY_LAG_S = 10.0        # the lag guard replay says (the small-shift test's time scale)
 SAY_RATIO = 1.5         # past this many times the model's, it says what the wander means
 SHORT_S, LONG_S = 10.0, 80.0   # the lags whose ratio gives the growth's exponent
+LIVE_CHECK_S = 60.0     # guard run measures what it holds this often (the samples' time) ...
+LIVE_KEEP_S = 600.0     # ... over the latest this much of it, across reboots (6,000 fixes at 10 Hz) ...
+LIVE_SEGMENTS = 3       # ... in at most this many stretches between reboots
+LIVE_MIN_SPAN_S = 300.0  # fixes held over this much time before it says anything (30 lags of SAY_LAG_S: the
+                        # figure of 12 read some receivers 1.2 times the model past 1.5 at one check)
 
 
 class PositionWander:
@@ -50,7 +61,7 @@ class PositionWander:
 
     def __init__(self, filter_cfg: FilterConfig | None = None):
         self.aid = GnssAiding(filter_cfg or FilterConfig())
-        self.frame: LocalFrame | None = None
+        self._last: tuple[float, float, float, float] | None = None    # the last fix's lat, lon, east, north
         self.rows = array("d")          # t (s), east, north (m), v_e, v_n (m/s), stretch
         self.sigma = array("d")         # the model's white noise and random walk of each fix
         self.q = array("d")
@@ -65,10 +76,14 @@ class PositionWander:
             if t > self._t - MAX_GAP_S:             # resent or out of order: left out
                 return
             self._stretch += 1                      # the clock went back: a reboot
+            self._new_stretch()
         self._t = t
-        if self.frame is None:
-            self.frame = LocalFrame(s.lat_deg, s.lon_deg, 0.0)
-        e, n = self.frame.to_en(s.lat_deg, s.lon_deg)
+        e = n = 0.0
+        if self._last is not None:      # each step in the plane at the fix before it, the one its velocity is in
+            lat, lon, e, n = self._last
+            de, dn = LocalFrame(lat, lon, 0.0).to_en(s.lat_deg, s.lon_deg)
+            e, n = e + de, n + dn
+        self._last = (s.lat_deg, s.lon_deg, e, n)
         self.rows.extend((t, e, n, s.vel_e_mps, s.vel_n_mps, self._stretch))
         self.sigma.append(self.aid.sigma_pos(s))
         self.q.append(self.aid.q_pos(s))
@@ -81,7 +96,7 @@ class PositionWander:
         "model_m"}], "exponent"?}, or None with fewer than MIN_PAIRS fixes."""
         if len(self.sigma) < MIN_PAIRS:
             return None
-        a = np.frombuffer(self.rows, dtype=float).reshape(-1, 6)
+        a = self._array()
         d = structure(a[:, 0], a[:, 1:3], a[:, 3:5], a[:, 5], lags)
         sigma, q = float(np.median(self.sigma)), float(np.median(self.q))
         dt = np.diff(a[:, 0])
@@ -93,6 +108,84 @@ class PositionWander:
         if d.get(SHORT_S) and LONG_S in d:
             out["exponent"] = round(math.log(d[LONG_S] / d[SHORT_S]) / math.log(LONG_S / SHORT_S), 2)
         return out
+
+
+    def _array(self) -> np.ndarray:
+        return np.frombuffer(self.rows, dtype=float).reshape(-1, 6)
+
+    def _new_stretch(self) -> None:
+        """A reboot started a new stretch (the whole log's sink keeps every one)."""
+
+    def _keep(self, keep: np.ndarray) -> None:
+        """Hold only the fixes where keep is True."""
+        if keep.all():
+            return
+        self.rows = array("d", self._array()[keep].ravel().tolist())
+        self.sigma = array("d", np.asarray(self.sigma)[keep].tolist())
+        self.q = array("d", np.asarray(self.q)[keep].tolist())
+
+
+class LivePositionWander(PositionWander):
+    """guard run's position wander (a sink): `say(line)` once, where the latest LIVE_KEEP_S of fixes,
+    spanning LIVE_MIN_SPAN_S at least, wander past SAY_RATIO times the model at SAY_LAG_S (see the
+    module's docstring). `checked`: the last ratio (None: not measured), made at `checked_us`."""
+
+    def __init__(self, say, filter_cfg: FilterConfig | None = None):
+        super().__init__(filter_cfg)
+        self.say = say
+        self.done = False
+        self.said_us: int | None = None             # when it said its line (the samples' clock)
+        self.checked: float | None = None
+        self.checked_us: int | None = None
+        self._every = Every(LIVE_CHECK_S)
+
+    def on_sample(self, s) -> None:
+        if self.done:
+            return
+        super().on_sample(s)
+        if isinstance(s, GnssFix) and self._every.due(s.t_us):
+            self.check(s.t_us)
+
+    def check(self, t_us: int) -> None:
+        """Measure what it holds at t_us (after letting go of what is older than LIVE_KEEP_S); say the
+        line where it shows a wander past the model."""
+        self._trim(t_us / 1e6)
+        a = self._array()
+        span = sum(float(np.ptp(a[a[:, 5] == k, 0])) for k in np.unique(a[:, 5])) if len(a) else 0.0
+        got = self.measure((SAY_LAG_S,)) if span >= LIVE_MIN_SPAN_S else None
+        self.checked, self.checked_us = ratio_at(got), t_us
+        if self.checked is None or self.checked <= SAY_RATIO:
+            return
+        at = got["lags"][0]
+        self.said_us, self.done = t_us, True        # said once, whatever `say` does
+        self.rows, self.sigma, self.q = array("d"), array("d"), array("d")
+        self.say(f"GNSS position wanders {at['wander_m']:.2f} m over {SAY_LAG_S:g} s from its own velocity, "
+                 f"{self.checked:.1f}x guard's model: its position alarms may be its own (guard tune fits it)")
+
+    def _trim(self, t: float) -> None:
+        """Hold the latest LIVE_KEEP_S of the samples' time at t: the newest stretch back from t, then each
+        older one back from its own end, for what is left; at most LIVE_SEGMENTS stretches."""
+        a = self._array()
+        if not len(a):
+            return
+        keep = np.zeros(len(a), dtype=bool)
+        left = LIVE_KEEP_S
+        for i, k in enumerate(np.unique(a[:, 5])[::-1][:LIVE_SEGMENTS]):
+            mine = a[:, 5] == k
+            end = t if i == 0 else float(a[mine, 0].max())
+            if left <= 0.0:
+                break
+            inside = mine & (a[:, 0] >= end - left)
+            keep |= inside
+            if inside.any():
+                left -= end - float(a[inside, 0].min())
+        del a
+        self._keep(keep)
+
+    def _new_stretch(self) -> None:
+        """A boot loop that never reaches a check holds no more than LIVE_SEGMENTS stretches."""
+        keep = self._array()[:, 5] > self._stretch - LIVE_SEGMENTS
+        self._keep(keep)
 
 
 def structure(t: np.ndarray, en: np.ndarray, v: np.ndarray, stretch: np.ndarray | None = None,

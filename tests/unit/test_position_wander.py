@@ -1,6 +1,7 @@
 """guard.runtime.position_wander: a receiver's position less its own velocity's integral, measured
 against known errors written here (white, a random walk, a drift), on a moving vehicle whose velocity
-the integral must take out, and across a gap and a reboot; and the line guard replay says."""
+the integral must take out, and across a gap and a reboot; the line guard replay says; and guard run's
+live check (LivePositionWander): said once, of the latest ten minutes, bounded through a boot loop."""
 
 import math
 
@@ -9,8 +10,9 @@ import pytest
 
 from guard.core.ekf import FilterConfig
 from guard.model.samples import GnssFix
-from guard.runtime.position_wander import (MIN_PAIRS, SAY_LAG_S, SAY_RATIO, PositionWander, model, ratio_at, said,
-                                           structure)
+from guard.runtime.position_wander import (LIVE_CHECK_S, LIVE_KEEP_S, LIVE_MIN_SPAN_S, LIVE_SEGMENTS, MIN_PAIRS,
+                                           SAY_LAG_S, SAY_RATIO, LivePositionWander, PositionWander, model, ratio_at,
+                                           said, structure)
 
 HZ = 5.0
 LAT0, LON0 = 47.397742, 8.545594
@@ -87,3 +89,54 @@ def test_the_sink_measures_what_the_fixes_carry_and_says_a_wander_past_the_model
         quiet.on_sample(s)
     assert ratio_at(quiet.measure()) < 1.0 and "may be its own wander" not in said(quiet.measure())
     assert PositionWander().measure() is None and said(None) is None
+
+
+def walking(seconds, q=0.4, seed=4):
+    """Fixes of a receiver whose position walks at q m/sqrt(s) against its exact velocity."""
+    return fixes(seconds, lambda t, rng: np.cumsum(rng.normal(0.0, q / math.sqrt(HZ), (len(t), 2)), axis=0),
+                 seed=seed)
+
+
+def live(stream):
+    said_lines = []
+    w = LivePositionWander(said_lines.append)
+    for s in stream:
+        w.on_sample(s)
+    return w, said_lines
+
+
+def test_guard_run_says_a_wandering_receiver_once_and_lets_go_and_a_quiet_one_never():
+    w, lines = live(walking(900.0))
+    assert len(lines) == 1 and lines[0].startswith("GNSS position wanders") and "guard tune" in lines[0], lines
+    assert w.said_us - int(1e6) <= (LIVE_MIN_SPAN_S + LIVE_CHECK_S) * 1e6 and w.done and len(w.rows) == 0
+    w, lines = live(fixes(1800.0, lambda t, rng: rng.normal(0.0, 0.1, (len(t), 2))))
+    assert lines == [] and w.checked is not None and w.checked < 1.0
+    held = w._array()[:, 0]
+    assert held[-1] - held[0] <= LIVE_KEEP_S + LIVE_CHECK_S + 1.0, "the latest 10 minutes, no more"
+
+
+def test_its_figure_is_that_of_the_latest_ten_minutes_and_a_boot_loop_holds_no_more():
+    """Quiet for 15 minutes, then a walk of 0.12 m/sqrt(s) (under the line): the last check's ratio is
+    the offline one of the fixes of the ten minutes before it. Then 60 reboots 20 s apart, each clock
+    starting again: at most LIVE_SEGMENTS stretches held, and nothing said of the quiet ones."""
+    def error(t, rng):
+        walk = np.cumsum(rng.normal(0.0, 0.12 / math.sqrt(HZ), (len(t), 2)) * (t >= 900.0)[:, None], axis=0)
+        return walk + rng.normal(0.0, 0.05, (len(t), 2))
+    stream = fixes(1500.0, error)
+    w, lines = live(stream)
+    assert lines == []
+    latest = PositionWander()
+    for s in stream:
+        if w.checked_us - LIVE_KEEP_S * 1e6 <= s.t_us <= w.checked_us:
+            latest.on_sample(s)
+    assert w.checked == pytest.approx(ratio_at(latest.measure()), rel=1e-9)
+    whole = PositionWander()
+    for s in stream:
+        whole.on_sample(s)
+    assert abs(w.checked - ratio_at(whole.measure())) > 0.05
+    boot = LivePositionWander(lines.append)
+    for k in range(60):
+        for s in fixes(20.0, lambda t, rng: rng.normal(0.0, 0.05, (len(t), 2)), seed=k):
+            boot.on_sample(s)
+        assert len(np.unique(boot._array()[:, 5])) <= LIVE_SEGMENTS
+    assert len(boot.sigma) <= LIVE_SEGMENTS * 20 * HZ and lines == []
