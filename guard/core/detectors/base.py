@@ -34,8 +34,10 @@ class TestRate:
     start; a log's first two samples can come milliseconds apart (a fix sent twice) or seconds apart (a
     receiver starting), which on real logs set a 5 Hz receiver's thresholds as at 52.6 Hz, and a 1 Hz
     one's as at 0.6 Hz, for the whole run; the median holds the stream's own rate through both, and
-    through close stamps while they are fewer than half of the intervals. The monitor gives a detector
-    increasing stamps (its time base drops resent and out-of-order samples)."""
+    through close stamps while they are fewer than half of the intervals. Where the threshold falls at the
+    RATE_SAMPLES-th sample (its first interval shorter than the stream's), a statistic already past the
+    new one alarms there, as it would have by then at the stream's own rate. The monitor gives a
+    detector increasing stamps (its time base drops resent and out-of-order samples)."""
 
     def __init__(self):
         self._times: dict[str, list[int]] = {}      # sensor -> its first samples' times
