@@ -15,6 +15,13 @@ def shared() -> Path:
     return ROOT.parent / "shared"
 
 
+@pytest.fixture(scope="module")
+def runs():
+    """Monitor runs that begin alike, their common beginning stepped once per test module (unit.synthetic.Runs)."""
+    from unit.synthetic import Runs
+    return Runs()
+
+
 def pytest_collection_modifyitems(items):
     for item in items:
         if Path(str(item.fspath)).resolve().parent.name == "system":

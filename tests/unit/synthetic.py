@@ -1,6 +1,8 @@
 """A synthetic drive for the core's tests: a level vehicle on a straight line, its IMU, magnetometer
-and GNSS in SI units, with small seeded noise; attacks and receiver quirks by parameter."""
+and GNSS in SI units, with small seeded noise; attacks and receiver quirks by parameter. And Runs:
+runs that begin alike, their common beginning stepped once."""
 
+import copy
 import math
 
 import numpy as np
@@ -77,3 +79,36 @@ def of(events, cls):
     return [e for e in events if isinstance(e, cls)]
 
 
+
+
+class Runs:
+    """Monitor runs that begin alike, their common beginning stepped once (a test module's `runs` fixture).
+
+    run(samples, cfg, at_us) keeps a copy of the monitor, and the events so far, at each time in at_us
+    (before the first sample stamped at or after it). A later run with an equal config whose samples up
+    to one of those marks are equal to the earlier run's continues a copy of that monitor from there. The
+    core is a pure step (sample in, events out; no clock, no I/O), so the events and the monitor are
+    those a fresh monitor gives, to the bit. Not for a run under a monkeypatch of the core, nor after one
+    within the module: the kept copies were stepped without it.
+    """
+
+    def __init__(self):
+        self._kept = []         # (cfg, record_tests, the samples before the mark, the monitor there, events)
+
+    def run(self, samples, cfg=None, at_us=(), record_tests=True):
+        cfg = cfg or MonitorConfig(declination_deg=0.0)
+        samples = list(samples)
+        start, mon, events = 0, None, []
+        for kept_cfg, kept_record, head, kept, said in self._kept:
+            n = len(head)
+            if n > start and kept_record == record_tests and kept_cfg == cfg and samples[:n] == head:
+                start, mon, events = n, kept, said
+        mon = copy.deepcopy(mon) if mon is not None else Monitor(cfg, record_tests)
+        events = list(events)
+        marks = {next((i for i, s in enumerate(samples) if getattr(s, "t_us", -1) >= t), len(samples))
+                 for t in at_us}
+        for i in range(start, len(samples)):
+            if i in marks:
+                self._kept.append((cfg, record_tests, samples[:i], copy.deepcopy(mon), list(events)))
+            events.extend(mon.step(samples[i]))
+        return mon, events

@@ -40,19 +40,19 @@ def _slow_compass(samples, every, sigma_deg, seed, repeated=False):
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
-def test_a_slow_compass_is_one_measurement_per_reading(seed):
+def test_a_slow_compass_is_one_measurement_per_reading(seed, runs):
     """A 2 Hz compass with 2 degrees of noise per reading among 50 Hz IMU samples: one measurement
     per reading, it never alarms, and a 15 degree turn of it at 120 s is caught within 2 s. Counted on
     every IMU sample until the next reading (what the log sources did), each error counts 25 times
     and it alarmed within seconds."""
     base = drive(180.0, yaw=0.4, seed=seed)
-    _, events = run(_slow_compass(base, 25, 2.0, seed), GROUND)
+    _, events = runs.run(_slow_compass(base, 25, 2.0, seed), GROUND, at_us=(T0_US + 120_000_000,))
     assert [a for a in of(events, Alarm) if a.sensor == "mag"] == []
     _, events = run(_slow_compass(base, 25, 2.0, seed, repeated=True), GROUND)
     assert [a for a in of(events, Alarm) if a.sensor == "mag"]
     k = next(i for i, s in enumerate(base) if s.t_us >= T0_US + 120_000_000)
     turned = drive(180.0, yaw=0.4, seed=seed, mag_offset_deg=15.0)
-    _, events = run(_slow_compass(base[:k] + turned[k:], 25, 2.0, seed), GROUND)
+    _, events = runs.run(_slow_compass(base[:k] + turned[k:], 25, 2.0, seed), GROUND)     # the first 120 s: once
     after = [a for a in of(events, Alarm) if a.t_us >= T0_US + 120_000_000]
     assert after and after[0].sensor == "mag" and after[0].t_us - (T0_US + 120_000_000) < 2_000_000, after[:1]
 
@@ -112,7 +112,7 @@ def test_a_receiver_that_reports_only_its_hdop_is_trusted_by_it():
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
-def test_an_older_receiver_wandering_at_its_hdop_is_quiet_and_a_step_still_caught(seed):
+def test_an_older_receiver_wandering_at_its_hdop_is_quiet_and_a_step_still_caught(seed, runs):
     """A receiver with no h_acc at HDOP 2 whose position wanders against its own velocity by about a
     metre over tens of seconds (the Erle PXF flights' receivers): read by its HDOP it is quiet, its
     test's largest statistic well under the one it reaches read as an unreported receiver (HDOP 1),
@@ -125,14 +125,15 @@ def test_an_older_receiver_wandering_at_its_hdop_is_quiet_and_a_step_still_caugh
         return walk[i, 0], walk[i, 1] + step
     clean = drive(600.0, yaw=0.4, seed=seed, gnss_offset=wander, vel_acc=None, h_acc=None)
     with_hdop = [dataclasses.replace(s, hdop=2.0) if isinstance(s, GnssFix) else s for s in clean]
-    mon, events = run(with_hdop, GROUND)
+    mon, events = runs.run(with_hdop, GROUND, at_us=(T0_US + 300_000_000,))
     assert [a for a in of(events, Alarm) if a.sensor == "gnss_pos"] == []
     read_by_hdop = mon.detector.peak["gnss_pos"]
     mon, events = run(clean, GROUND)
     assert read_by_hdop < 0.75 * mon.detector.peak["gnss_pos"], (read_by_hdop, mon.detector.peak["gnss_pos"])
     stepped = drive(310.0, yaw=0.4, seed=seed, vel_acc=None, h_acc=None,      # the same wander to 310 s
                     gnss_offset=lambda t: wander(t, 10.0 if t >= 300.0 else 0.0))
-    _, events = run([dataclasses.replace(s, hdop=2.0) if isinstance(s, GnssFix) else s for s in stepped], GROUND)
+    _, events = runs.run([dataclasses.replace(s, hdop=2.0) if isinstance(s, GnssFix) else s for s in stepped],
+                         GROUND)                                 # its first 300 s those of the run above: once
     after = [a for a in of(events, Alarm) if a.t_us >= T0_US + 300_000_000]
     assert after and after[0].sensor == "gnss_pos" and after[0].t_us - (T0_US + 300_000_000) < 400_000, after[:1]
 
@@ -292,37 +293,38 @@ def test_a_compass_that_speaks_late_does_not_integrate_an_imu_too_slow():
 
 @pytest.mark.parametrize("vehicle", ["ground", "air"])
 @pytest.mark.parametrize("seed", [1, 2, 3, 4])
-def test_motors_spinning_up_are_a_vibration_not_an_accelerometer_attack(vehicle, seed):
+def test_motors_spinning_up_are_a_vibration_not_an_accelerometer_attack(vehicle, seed, runs):
     """A copter's motors spin up: within a sample, its accelerometers' noise goes from 0.03 m/s^2 to
     1 m/s^2 (the lift-off alarms of real flights). The noise is measured at once, and nothing alarms
     (on the code before, 3 of 4 such runs raised an accelerometer alarm within 0.4 s)."""
     samples = drive(60.0, seed=seed, vibration=lambda t: 1.0 if t >= 30.0 else 0.0)
-    mon, events = run(samples, MonitorConfig(declination_deg=0.0, vehicle=vehicle))
+    mon, events = runs.run(samples, MonitorConfig(declination_deg=0.0, vehicle=vehicle),   # the tests below
+                           at_us=(T0_US + 30_000_000, T0_US + 45_000_000))                 # go on from here
     assert of(events, Alarm) == []
 
 
 @pytest.mark.parametrize("vehicle", ["ground", "air"])
 @pytest.mark.parametrize("seed", [1, 2, 3])
-def test_an_accelerometer_bias_under_that_vibration_is_still_caught(vehicle, seed):
+def test_an_accelerometer_bias_under_that_vibration_is_still_caught(vehicle, seed, runs):
     """The same vibration from 30 s, and a 0.5 m/s^2 bias on the forward accelerometer from 45 s:
     caught within 10 s (4 to 7 s: the bias is half the vibration; 1.4 to 2 s without it), nothing
     before."""
     samples = drive(70.0, seed=seed, vibration=lambda t: 1.0 if t >= 30.0 else 0.0,
                     accel_bias=lambda t: 0.5 if t >= 45.0 else 0.0)
-    mon, events = run(samples, MonitorConfig(declination_deg=0.0, vehicle=vehicle))
+    mon, events = runs.run(samples, MonitorConfig(declination_deg=0.0, vehicle=vehicle))
     alarms = of(events, Alarm)
     assert alarms and 0 <= alarms[0].t_us - (T0_US + 45_000_000) <= 10_000_000, alarms[:1]
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3, 4, 5])
-def test_a_bias_written_with_a_jitter_is_caught_as_a_bias_under_a_vibration(seed):
+def test_a_bias_written_with_a_jitter_is_caught_as_a_bias_under_a_vibration(seed, runs):
     """What the short memory gives up: an attacker writes 1.5 m/s^2 of jitter into the accelerometers and
     0.5 m/s^2 of bias into the forward one at the same instant. The jitter is no longer an alarm by
     itself (as a motor start is not); the bias is caught within 10 s (0.1 to 7.6 s on these seeds,
     where the code before alarmed at the jitter's onset, within 0.3 s, in 4 of 5)."""
     samples = drive(60.0, seed=seed, vibration=lambda t: 1.5 if t >= 30.0 else 0.0,
                     accel_bias=lambda t: 0.5 if t >= 30.0 else 0.0)
-    mon, events = run(samples, GROUND)
+    mon, events = runs.run(samples, GROUND)
     alarms = of(events, Alarm)
     assert alarms and 0 <= alarms[0].t_us - (T0_US + 30_000_000) <= 10_000_000, alarms[:1]
 
