@@ -296,7 +296,7 @@ def test_one_forged_frame_on_gnss_alone_neither_starts_a_new_filter_nor_walks_th
 
 @pytest.mark.parametrize("cfg", [GROUND, AIR], ids=["inertial", "gnss-alone"])
 @pytest.mark.parametrize("seed", [3, 21])
-def test_an_imu_stream_that_stops_then_a_gnss_silence_holds_no_fix_for_good(cfg, seed):
+def test_an_imu_stream_that_stops_then_a_gnss_silence_holds_no_fix_for_good(cfg, seed, runs):
     """The IMU's stream stops at 40 s (a stream rate set to 0, a sensor gone) and then the GNSS is
     silent for 15 s: the fixes after it, far ahead of the filter's time, once waited for an IMU
     sample to confirm their base, and none came: nothing was monitored again. Now 3 s of fixes
@@ -305,25 +305,25 @@ def test_an_imu_stream_that_stops_then_a_gnss_silence_holds_no_fix_for_good(cfg,
     samples = drive(120.0, yaw=0.4, seed=seed, mag=(lambda t: False) if cfg is AIR else (lambda t: True))
     live = [s for s in samples if isinstance(s, GnssFix) or s.t_us < T0_US + 40e6]
     samples = [s for s in live if not (isinstance(s, GnssFix) and T0_US + 40e6 <= s.t_us < T0_US + 55e6)]
-    mon, events = run(samples, cfg)
+    mon, events = runs.run(samples, cfg, at_us=(T0_US + 30e6, T0_US + 40e6))     # the runs below begin so
     said = [n.text for n in of(events, Notice) if "re-initialised" in n.text]
     assert len(said) == 1 and said[0].startswith("time jumped +15.") and "GNSS fixes alone" in said[0], said
     assert 14 <= mon.skipped["time_off_base"] <= 16, mon.skipped           # 3 s of fixes at 5 Hz
     assert min(e.t_us for e in of(events, Estimate) if e.t_us > T0_US + 40e6) <= T0_US + 58.5e6
     assert not of(events, Alarm)
-    fixes = run(samples := drive(60.0, yaw=0.4, seed=seed, mag=(lambda t: False) if cfg is AIR else None),
-                cfg)[0].gnss_index
+    fixes = runs.run(samples := drive(60.0, yaw=0.4, seed=seed, mag=(lambda t: False) if cfg is AIR else None),
+                     cfg)[0].gnss_index
     k = next(i for i, s in enumerate(samples) if s.t_us >= T0_US + 30e6)
     forged = [dataclasses.replace(s, t_us=s.t_us + 20_000_000) for s in samples[k:] if isinstance(s, GnssFix)
               and s.t_us < T0_US + 35e6]
     mixed = sorted(samples + forged, key=lambda s: s.t_us - (20_000_000 if s in forged else 0))
-    mon, events = run(mixed, cfg)
+    mon, events = runs.run(mixed, cfg)
     assert mon.gnss_index == fixes and mon.skipped["time_off_base"] == len(forged) == 25, mon.skipped
     assert not [n for n in of(events, Notice) if "re-initialised" in n.text]
 
 
 @pytest.mark.parametrize("how", ["clock 100 ppm fast", "every third lost", "some sent twice", "a 1.2 s gap"])
-def test_a_resumed_stream_confirms_its_base_however_it_comes(how):
+def test_a_resumed_stream_confirms_its_base_however_it_comes(how, runs):
     """The same stop and silence with fixes that come as real ones do after it: a 1 Hz receiver on a
     clock a little fast (intervals just over 1 s), a lossy link's, fixes sent again late, a gap in
     them: each confirms its base, and the jump said is the silence's."""
@@ -341,7 +341,7 @@ def test_a_resumed_stream_confirms_its_base_however_it_comes(how):
             samples.insert(next(i for i, s in enumerate(samples) if s is g) + 1, f)
     if how == "a 1.2 s gap":
         samples = [s for s in samples if not (isinstance(s, GnssFix) and T0_US + 56e6 <= s.t_us < T0_US + 57.2e6)]
-    mon, events = run(samples, GROUND)
+    mon, events = runs.run(samples, GROUND)
     said = [n.text for n in of(events, Notice) if "re-initialised" in n.text]
     assert len(said) == 1 and said[0].startswith("time jumped +15.0 s by the GNSS fixes alone"), said
     assert min(e.t_us for e in of(events, Estimate) if e.t_us > T0_US + 40e6) <= T0_US + 61e6
@@ -356,14 +356,14 @@ def imu_silent(samples, start_s: float, end_s: float):
 @pytest.mark.parametrize("cfg", [GROUND, AIR], ids=["ground", "air"])
 @pytest.mark.parametrize("silence_s", [4.0, 6.0, 12.0])
 @pytest.mark.parametrize("seed", [3, 4])
-def test_an_imu_silence_while_the_fixes_go_on_raises_no_alarm(cfg, silence_s, seed):
+def test_an_imu_silence_while_the_fixes_go_on_raises_no_alarm(cfg, silence_s, seed, runs):
     """The IMU's stream stops for 4 to 12 s while the fixes go on. Predicted as if the IMU were there,
     the fixes turned the heading through correlations nothing measured, and the first fusion after
     the silence raised an alarm (the compass's, the accelerometer's or the GNSS velocity's) in 6 of
     these 12 drives. Now the heading is held 3 s in (said) and given back to the compass at the IMU's
     return (said): no alarm, every fix of the silence monitored, and a gyro bias after it caught."""
     samples = imu_silent(drive(90.0, yaw=0.4, seed=seed), 40.0, 40.0 + silence_s)
-    mon, events = run(samples, cfg)
+    mon, events = runs.run(samples, cfg, at_us=(T0_US + 40e6, T0_US + 70e6))   # the first 40 s, once a seed
     texts = [n.text for n in of(events, Notice)]
     assert not of(events, Alarm), [(a.sensor, a.t_us) for a in of(events, Alarm)]
     assert sum(t.startswith("no IMU sample for 3.") for t in texts) == 1, texts
@@ -373,7 +373,7 @@ def test_an_imu_silence_while_the_fixes_go_on_raises_no_alarm(cfg, silence_s, se
     assert len(fixes) >= 5 * silence_s - 1 and mon.inertial is True
     bias = imu_silent(drive(90.0, yaw=0.4, seed=seed, gyro_bias=lambda t: 0.1 if t >= 70.0 else 0.0),
                       40.0, 40.0 + silence_s)
-    alarms = of(run(bias, cfg)[1], Alarm)
+    alarms = of(runs.run(bias, cfg)[1], Alarm)                                  # the first 70 s: the run above
     assert alarms and T0_US + 70e6 <= alarms[0].t_us <= T0_US + 72e6, [(a.sensor, a.t_us) for a in alarms]
 
 
@@ -395,7 +395,7 @@ def test_an_imu_silence_gives_away_neither_a_standing_alarm_nor_what_was_learnt(
 
 
 @pytest.mark.parametrize("seed", [1, 3])
-def test_a_slow_compass_attack_through_an_imu_silence_on_wheels_is_still_caught(seed):
+def test_a_slow_compass_attack_through_an_imu_silence_on_wheels_is_still_caught(seed, runs):
     """A compass turned 0.5 degree/s from 40 s, the IMU's frames dropped from 45 to 48.5 s: on wheels
     it is still caught within 12 s of its onset, and the same silence without the attack raises no
     alarm. Without the drop the GNSS velocity's test alarms after a run of over 4 s, in which the
@@ -404,12 +404,12 @@ def test_a_slow_compass_attack_through_an_imu_silence_on_wheels_is_still_caught(
     isolation needs to judge the compass's turn, and stays the GNSS velocity's. Pinned as it is, so
     that a change of the naming changes the README too."""
     attack = drive(60.0, yaw=0.4, seed=seed, mag_turn=lambda t: 0.5 * (t - 40.0) if t >= 40.0 else 0.0)
-    clean = of(run(attack, GROUND)[1], Alarm)
+    clean = of(runs.run(attack, GROUND, at_us=(T0_US + 40e6, T0_US + 45e6))[1], Alarm)   # the runs below begin so
     assert clean and clean[0].sensor == Sensor.MAG and T0_US + 40e6 <= clean[0].t_us <= T0_US + 50e6, clean[:1]
-    dropped = of(run(imu_silent(attack, 45.0, 48.5), GROUND)[1], Alarm)
+    dropped = of(runs.run(imu_silent(attack, 45.0, 48.5), GROUND)[1], Alarm)
     assert dropped and T0_US + 40e6 <= dropped[0].t_us <= T0_US + 52e6, dropped[:1]
     assert dropped[0].sensor == Sensor.GNSS_VEL, dropped[0]      # the README's "what it still gives away"
-    assert not of(run(imu_silent(drive(60.0, yaw=0.4, seed=seed), 45.0, 48.5), GROUND)[1], Alarm)
+    assert not of(runs.run(imu_silent(drive(60.0, yaw=0.4, seed=seed), 45.0, 48.5), GROUND)[1], Alarm)
 
 
 def test_an_imu_that_stops_for_good_then_a_gnss_silence_is_said_and_quiet():
