@@ -27,7 +27,22 @@ SLOW = (1.5, 2.0, 1.0, 2.5, 1.5, 1.0)       # the clean route's legs at walking 
 HOLD_MPS = 1.5                               # the receiver holds its course below this
 
 
+@pytest.fixture(scope="module")
+def slow_drives(tmp_path_factory):
+    """slow_drive, each drive simulated once in the module (the simulator is not guard's: no monkeypatch of
+    guard changes what it writes). Its logs are read, never written to."""
+    work, made = tmp_path_factory.mktemp("slow"), {}
+
+    def slow(seed: int, attacks=(), duration_s=120.0):
+        key = (seed, tuple(attacks), duration_s)
+        if key not in made:
+            made[key] = slow_drive(work / str(len(made)), seed, attacks, duration_s)
+        return made[key]
+    return slow
+
+
 def slow_drive(tmp_path, seed: int, attacks=(), duration_s=120.0):
+    tmp_path.mkdir(exist_ok=True)
     sc = scenario.load("clean")
     route = dataclasses.replace(sc.route,
                                 waypoints_m=tuple((p[0], p[1], v) for p, v in zip(sc.route.waypoints_m, SLOW)))
@@ -78,14 +93,14 @@ def test_a_held_course_widens_the_velocity_by_twice_its_speed_where_the_filter_h
 
 
 @pytest.mark.parametrize("vehicle", ["ground", "air"])
-def test_slow_driving_with_a_held_course_raises_no_alarm_and_says_so_once(tmp_path, vehicle):
+def test_slow_driving_with_a_held_course_raises_no_alarm_and_says_so_once(slow_drives, vehicle):
     """Two minutes at 1 to 2.5 m/s through the route's turns, the receiver holding its course below
     1.5 m/s, over three seeds: no alarm, the held fixes counted and said once. The first seed also as
     DataFlash (speed and course, as GPS_RAW_INT) and as ULog (the velocity in float32 components, as
     PX4 logs a receiver that sends speed and course)."""
     config = parse({"monitor": {"vehicle": vehicle}})
     for seed in (1, 2, 3):
-        tlog, _ = slow_drive(tmp_path, seed)
+        tlog, _ = slow_drives(seed)
         for log in (tlog, tlog.with_suffix(".bin"), tlog.with_suffix(".ulg")) if seed == 1 else (tlog,):
             report = replay(str(log), config)
             assert report["alarms"] == [], f"{log.name}: {report['alarms'][:3]}"
@@ -96,10 +111,10 @@ def test_slow_driving_with_a_held_course_raises_no_alarm_and_says_so_once(tmp_pa
 
 
 @pytest.mark.parametrize("vehicle", ["ground", "air"])
-def test_without_the_rule_the_same_drive_alarms(tmp_path, monkeypatch, vehicle):
+def test_without_the_rule_the_same_drive_alarms(slow_drives, monkeypatch, vehicle):
     """The control: a held course taken as a measured one parts from the vehicle's track in the turns."""
     monkeypatch.setattr(gnss, "HELD_COURSE_MAX_MPS", 0.0)
-    tlog, _ = slow_drive(tmp_path, 1)
+    tlog, _ = slow_drives(1)
     report = replay(str(tlog), parse({"monitor": {"vehicle": vehicle}}))
     assert "gnss_course_held" not in report["skipped"]
     assert any(a["sensor"] == "gnss_vel" for a in report["alarms"]), report["alarms"][:3]
@@ -142,14 +157,14 @@ def test_tune_leaves_a_held_course_out(tmp_path, monkeypatch):
     assert floors[HOLD_MPS] == pytest.approx(floors[0.0], rel=0.15), floors
 
 
-def test_the_model_fit_and_the_wander_leave_a_held_fix_out(tmp_path):
+def test_the_model_fit_and_the_wander_leave_a_held_fix_out(slow_drives):
     """Every held fix's velocity innovation is marked unmodelled, and no other; one such changes
     neither the fit's mean, and drops the wander's block being filled (not closed later across it)."""
     from guard.core.monitor import Monitor
     from guard.model.events import Tested
     from guard.model.sensors import Sensor
     from guard.sources.tlog import TlogReader, tlog_samples
-    tlog, _ = slow_drive(tmp_path, 1)
+    tlog, _ = slow_drives(1)
     m = Monitor(parse({"monitor": {"max_wander_factor": 4.0}}).monitor)
     reader = TlogReader(str(tlog))
     tested = [e.innovation for s in tlog_samples(reader) for e in m.step(s) if isinstance(e, Tested)]
@@ -253,24 +268,33 @@ def test_a_held_speed_on_a_diagonal_track_is_tested_against_its_own_variance_not
     assert plain.tested(S) is S                         # a measured vector: S as it is
 
 
-@pytest.mark.parametrize("vehicle", ["ground", "air"])
-def test_a_course_held_up_to_three_metres_a_second_through_every_turn_raises_no_alarm(tmp_path, monkeypatch, vehicle):
-    """A receiver that holds its course below 3 m/s (a car's often does) while the route is driven at 1
-    to 2.5 m/s: no course is ever fresh, and the held one stands across every turn. The speed measured
-    along the filter's own track leaves its error out of the innovation: quiet on two seeds. The
-    control, the held fix taken as a widened vector (the error within 1 sigma, but the same fix after
-    fix, which the CUSUM sums), alarms."""
-    config = parse({"monitor": {"vehicle": vehicle}})
-    logs = []
+@pytest.fixture(scope="module")
+def held_below_3(tmp_path_factory):
+    """The route at 1 to 2.5 m/s, its receiver holding its course below 3 m/s, seeds 1 and 2: simulated once."""
+    work, logs = tmp_path_factory.mktemp("hold3"), []
     for seed in (1, 2):
         sc = scenario.load("clean")
         route = dataclasses.replace(sc.route, waypoints_m=tuple((p[0], p[1], v)
                                                                 for p, v in zip(sc.route.waypoints_m, SLOW)))
         sc = dataclasses.replace(sc, duration_s=120.0, route=route,
                                  noise=dataclasses.replace(sc.noise, gnss_course_hold_mps=3.0))
-        logs.append(str(tmp_path / f"hold3-{seed}.tlog"))
+        logs.append(str(work / f"hold3-{seed}.tlog"))
         run(sc, seed, tlog=logs[-1])
-        report = replay(logs[-1], config)
+    return logs
+
+
+@pytest.mark.parametrize("vehicle", ["ground", "air"])
+def test_a_course_held_up_to_three_metres_a_second_through_every_turn_raises_no_alarm(held_below_3, monkeypatch,
+                                                                                       vehicle):
+    """A receiver that holds its course below 3 m/s (a car's often does) while the route is driven at 1
+    to 2.5 m/s: no course is ever fresh, and the held one stands across every turn. The speed measured
+    along the filter's own track leaves its error out of the innovation: quiet on two seeds. The
+    control, the held fix taken as a widened vector (the error within 1 sigma, but the same fix after
+    fix, which the CUSUM sums), alarms."""
+    config = parse({"monitor": {"vehicle": vehicle}})
+    logs = held_below_3
+    for log in logs:
+        report = replay(log, config)
         assert report["alarms"] == [], report["alarms"][:3]
         assert report["skipped"]["gnss_course_held"] > 1000
     monkeypatch.setattr(GnssAiding, "held_speed", lambda self, fix, hx, H, P: None)
