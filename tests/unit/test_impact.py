@@ -32,8 +32,10 @@ def blown(samples, at_s=BLOW_AT_S, blow=BLOW):
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
-def test_a_blow_is_set_aside_and_raises_nothing(seed):
-    mon, events = run(blown(drive(120.0, yaw=0.7, seed=seed)))
+def test_a_blow_is_set_aside_and_raises_nothing(seed, runs):
+    # the tests below go on from the blow's time or a second after it
+    mon, events = runs.run(blown(drive(120.0, yaw=0.7, seed=seed)), at_us=(T0_US + BLOW_AT_S * 1e6,
+                                                                          T0_US + (BLOW_AT_S + 1.0) * 1e6))
     assert of(events, Alarm) == []
     said = [n for n in of(events, Notice) if "blow at the IMU" in n.text]
     first_g = math.dist(BLOW[0], (0.0, 0.0, 0.0)) / impact.G
@@ -51,13 +53,13 @@ def test_the_same_blow_integrated_alarms(seed, monkeypatch):
     assert "imu_impact" not in mon.skipped
 
 
-def _first_alarm_after(samples, start):
-    alarms = [a for a in of(run(samples)[1], Alarm) if a.t_us >= start]
+def _first_alarm_after(runs, samples, start):
+    alarms = [a for a in of(runs.run(samples)[1], Alarm) if a.t_us >= start]
     return (alarms[0].t_us - start) / 1e6 if alarms else None
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
-def test_an_accelerometer_attack_just_after_a_blow_is_caught_as_without_it(seed):
+def test_an_accelerometer_attack_just_after_a_blow_is_caught_as_without_it(seed, runs):
     """0.5 m/s^2 on x from 1 s after the blow (within 0.5 s of the IMU's return): caught as soon as the
     same attack on the same drive without a blow."""
     start = T0_US + (BLOW_AT_S + 1.0) * 1e6
@@ -66,17 +68,18 @@ def test_an_accelerometer_attack_just_after_a_blow_is_caught_as_without_it(seed)
         return [dataclasses.replace(s, acc_x_mps2=s.acc_x_mps2 + 0.5) if isinstance(s, ImuSample) and
                 s.t_us >= start else s for s in samples]
     clean = drive(120.0, yaw=0.7, seed=seed)
-    without, after = _first_alarm_after(attacked(clean), start), _first_alarm_after(attacked(blown(clean)), start)
+    without = _first_alarm_after(runs, attacked(clean), start)
+    after = _first_alarm_after(runs, attacked(blown(clean)), start)
     assert without is not None and after is not None and after <= without + 0.5, (without, after)
 
 
-def test_blows_that_do_not_stop_are_not_blows():
+def test_blows_that_do_not_stop_are_not_blows(runs):
     """An attacker writing 4 g into every fourth accelerometer sample from 60 s: the IMU is set aside
     at most BUDGET_S of WINDOW_S, then used and tested as it reads, with a warning, and the attack is caught."""
     start = T0_US + BLOW_AT_S * 1e6
     samples = [dataclasses.replace(s, acc_x_mps2=40.0) if isinstance(s, ImuSample) and s.t_us >= start
                and (s.t_us - T0_US) // 20_000 % 4 == 0 else s for s in drive(120.0, yaw=0.7, seed=1)]
-    mon, events = run(samples)
+    mon, events = runs.run(samples)
     warned = [n for n in of(events, Notice) if "not blows" in n.text]
     assert len(warned) == 1 and warned[0].t_us - start <= (impact.BUDGET_S + 0.1) * 1e6, warned
     alarms = of(events, Alarm)
@@ -97,13 +100,13 @@ def test_a_rewind_over_a_blow_adds_it_again():
     assert rewound(True) - rewound(False) == pytest.approx(4.0, rel=0.01)
 
 
-def test_the_budget_is_a_window_not_a_switch():
+def test_the_budget_is_a_window_not_a_switch(runs):
     """A string of blows from 60 to 63 s spends the budget (the warning); a real blow 90 s later is
     set aside again, as the first would have been, and raises nothing."""
     start, stop = T0_US + 60e6, T0_US + 63e6
     samples = [dataclasses.replace(s, acc_x_mps2=40.0) if isinstance(s, ImuSample) and start <= s.t_us < stop
                and (s.t_us - T0_US) // 20_000 % 4 == 0 else s for s in drive(200.0, yaw=0.7, seed=1)]
-    mon, events = run(blown(samples, at_s=150.0))
+    mon, events = runs.run(blown(samples, at_s=150.0))
     assert [n for n in of(events, Notice) if "not blows" in n.text]
     later = [a for a in of(events, Alarm) if a.t_us >= T0_US + 149e6]
     assert later == [], later[:1]

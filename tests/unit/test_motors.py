@@ -36,7 +36,7 @@ def flight(seed, turn_deg, duration_s=90.0, then=None):
 
 @pytest.mark.parametrize("vehicle", [AIR, GROUND], ids=["air", "ground"])
 @pytest.mark.parametrize("seed,turn_deg", [(1, 20.0), (2, -15.0), (3, 35.0)])
-def test_the_compass_turned_by_the_motors_current_is_learnt_not_alarmed(vehicle, seed, turn_deg):
+def test_the_compass_turned_by_the_motors_current_is_learnt_not_alarmed(vehicle, seed, turn_deg, runs):
     """The motors start at 30 s (the accelerometers' noise from 0.03 to 1 m/s^2) and, from lift-off a
     second later, their current turns the compass by 15 to 35 degrees over 3 s (the real flights of the
     README: 5 to 39 degrees). Heard, said once, learnt as the compass's offset: no alarm, and by the
@@ -44,7 +44,9 @@ def test_the_compass_turned_by_the_motors_current_is_learnt_not_alarmed(vehicle,
     it), within 5 in the air (the gyro alone holds it while the compass's offset moves: on a straight
     line nothing else observes it), the offset the rest of the compass's turn; and the turn is said
     when the window closes."""
-    mon, events = run(flight(seed, turn_deg), vehicle)
+    # the flights below go on from lift-off, or from a compass's jump
+    mon, events = runs.run(flight(seed, turn_deg), vehicle,
+                           at_us=[T0_US + t * 1e6 for t in (START_S + 1.0, 33.0, START_S + OPEN_S + 10.0)])
     assert of(events, Alarm) == []
     said = [(round((e.t_us - T0_US) / 1e6, 1), e.text) for e in of(events, Notice) if "the motors" in e.text[:12]]
     assert len(said) == 1 and START_S <= said[0][0] <= START_S + 0.5 and "started" in said[0][1], said
@@ -61,11 +63,11 @@ def test_the_compass_turned_by_the_motors_current_is_learnt_not_alarmed(vehicle,
 
 
 @pytest.mark.parametrize("vehicle", [AIR, GROUND], ids=["air", "ground"])
-def test_a_turn_beyond_what_a_current_makes_is_said_as_such(vehicle):
+def test_a_turn_beyond_what_a_current_makes_is_said_as_such(vehicle, runs):
     """A compass turned 70 degrees over 3 s at lift-off (the real flights' currents: 5 to 39): the
     window learns it as it would a current's (the cost the module's docstring states), but what is
     said when it closes is that it is more than a current makes, not a compassmot hint."""
-    mon, events = run(flight(1, 70.0), vehicle)
+    mon, events = runs.run(flight(1, 70.0), vehicle)
     turned = [e for e in of(events, Notice) if "the compass turned" in e.text]
     assert len(turned) == 1 and turned[0].level == "warning", turned
     assert "more than a motors' current" in turned[0].text and "compassmot" not in turned[0].text, turned[0].text
@@ -98,12 +100,12 @@ def test_without_the_window_the_same_take_off_alarms_the_compass(seed, turn_deg,
 @pytest.mark.parametrize("seed", [1, 2, 3])
 @pytest.mark.parametrize("at_s,jump_deg", [(33.0, 40.0), (START_S + OPEN_S + 10.0, 12.0)],
                          ids=["in-the-window", "after-it"])
-def test_a_compass_that_jumps_is_still_caught_in_the_window_and_after(seed, at_s, jump_deg):
+def test_a_compass_that_jumps_is_still_caught_in_the_window_and_after(seed, at_s, jump_deg, runs):
     """An attack on the magnetometer, in one reading: 40 degrees 3 s after the motors' start (the
     window open: a fast change is no current's) or 12 degrees 10 s after the window closed (the
     compass's test as tight as before the motors): caught within 1 s either way."""
     samples = flight(seed, 20.0, then=lambda t: jump_deg if t >= at_s else 0.0)
-    mon, events = run(samples, AIR)
+    mon, events = runs.run(samples, AIR, at_us=(T0_US + 33e6,))
     alarms = of(events, Alarm)
     assert alarms and alarms[0].sensor == "mag", alarms[:1]
     assert 0 <= alarms[0].t_us - (T0_US + at_s * 1e6) <= 1_000_000, alarms[:1]
