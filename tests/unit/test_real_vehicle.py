@@ -24,7 +24,7 @@ def test_a_compass_a_few_degrees_off_is_learnt_and_never_alarms(offset_deg, seed
     """A ground vehicle whose compass reads a few degrees off the World Magnetic Model: the offset
     is learnt in the first minute of moving (b_psi within 1 degree; b_psi is in the ENU yaw's sense,
     counter-clockwise, so a compass reading clockwise-high has a negative one), the heading is the
-    true one, and nothing alarms over ten minutes."""
+    true one, and nothing alarms over five minutes."""
     mon, events = run(drive(300.0, yaw=0.4, seed=seed, mag_offset_deg=offset_deg), GROUND)
     assert of(events, Alarm) == []
     minute = [e for e in of(events, Estimate) if e.t_us >= T0_US + 60_000_000]
