@@ -270,6 +270,18 @@ def one(job: tuple[str, str | None, tuple[str, ...], tuple[str, ...], bool]) -> 
     return out
 
 
+def said_live(results: list[dict], key: str, what: str) -> str | None:
+    """The summary's line of what guard run would say once (`key` of each result): on how many logs, and
+    how long after the first fix on its clock."""
+    heard = [r[key] for r in results if r.get(key)]
+    if not heard:
+        return None
+    after = sorted(x["after_first_fix_s"] for x in heard if x["after_first_fix_s"] is not None)
+    when = f" ({after[0] / 60:.1f} to {after[-1] / 60:.1f} min after the first fix on its clock, median " \
+        f"{after[len(after) // 2] / 60:.1f})" if after else ""
+    return f"guard run would say {what} on {len(heard)}{when}"
+
+
 def attack_spec(text: str) -> str:
     kind, _, size = text.partition(":")
     try:
@@ -378,18 +390,10 @@ def main(argv=None) -> int:
         print(f"{len(near)} of the {len(since)} new alarms came within {OPEN_S:g} s of a motors' start heard in the "
               f"IMU ({sum(1 for x in near if x < 10.0)} within 10 s), {sum(1 for x in since if x is None)} before "
               "any was heard")
-    heard = [r["wander_said_live"] for r in results if r.get("wander_said_live")]
-    if heard:
-        after = sorted(x["after_first_fix_s"] for x in heard if x["after_first_fix_s"] is not None)
-        when = f" ({after[0] / 60:.1f} to {after[-1] / 60:.1f} min after the first fix on its clock, median " \
-            f"{after[len(after) // 2] / 60:.1f})" if after else ""
-        print(f"guard run would say its accelerometers wander on {len(heard)}{when}")
-    heard = [r["position_said_live"] for r in results if r.get("position_said_live")]
-    if heard:
-        after = sorted(x["after_first_fix_s"] for x in heard if x["after_first_fix_s"] is not None)
-        when = f" ({after[0] / 60:.1f} to {after[-1] / 60:.1f} min after the first fix on its clock, median " \
-            f"{after[len(after) // 2] / 60:.1f})" if after else ""
-        print(f"guard run would say its receiver's position wanders past the model on {len(heard)}{when}")
+    for key, what in (("wander_said_live", "its accelerometers wander"),
+                      ("position_said_live", "its receiver's position wanders past the model")):
+        if line := said_live(results, key, what):
+            print(line)
     if args.autopilot:
         print(f"the autopilot's own EKF saw {saw[0]} of the {saw[1]} GNSS velocity alarms it could be asked about "
               f"too (DataFlash and ULog logs: one of its {SAW_TOP} largest windows of the flight so far, the same "
