@@ -36,6 +36,7 @@ from guard.config import parse                         # noqa: E402
 from guard.runtime.agreement import LIVE_MIN_PAIRS, WANDER_SAY_MPS2, LiveWander     # noqa: E402
 from guard.runtime.daemon import Daemon                        # noqa: E402
 from guard.runtime.deviation import LiveCheck                  # noqa: E402
+import guard.runtime.position_wander as position_wander          # noqa: E402
 from guard_sim import scenario                               # noqa: E402
 from guard_sim.mavout import Encoder                         # noqa: E402
 from guard_sim.run import Simulation                         # noqa: E402
@@ -854,12 +855,14 @@ def test_a_long_warning_reaches_the_ground_station_whole():
 
 
 @pytest.mark.parametrize("iron", [(0.15, -0.1), (0.0, 0.0)])
-def test_a_compass_that_reads_off_by_heading_is_said_once_on_the_link(iron, caplog):
+def test_a_compass_that_reads_off_by_heading_is_said_once_on_the_link(iron, caplog, monkeypatch):
     """A compass with a hard iron of 0.18 of the field (up to 10 degrees by heading) from the start, on
     the simulator's loop: the magnetometer alarms at its first turn, and once the turns show the iron
     (a lap, about two minutes) the ground station is told once, at WARNING, that the compass reads that
     far off by heading and that a field come in flight fits alike, with that first alarm's k. A clean
-    compass: nothing said of it."""
+    compass: nothing said of it. The simulator's usual receiver: its position's wander measured (over
+    2 minutes of fixes here, not 5, to keep the drive short) and not said."""
+    monkeypatch.setattr(position_wander, "LIVE_MIN_SPAN_S", 120.0)
     base = scenario.load("clean")
     sc = dataclasses.replace(base, noise=dataclasses.replace(base.noise, mag_iron_x=iron[0], mag_iron_y=iron[1]))
     enc, items = scenario_messages(sc, seed=3, until_s=200)
@@ -877,6 +880,10 @@ def test_a_compass_that_reads_off_by_heading_is_said_once_on_the_link(iron, capl
     assert not wander.done and wander.checked[1] >= LIVE_MIN_PAIRS and wander.checked[0] < WANDER_SAY_MPS2 / 4, \
         wander.checked
     assert not any("accelerometers wander" in t for t in said)
+    receiver = next(s for s in g.d.pump.sinks if isinstance(s, position_wander.LivePositionWander))
+    assert not receiver.done and receiver.checked is not None and receiver.checked < position_wander.SAY_RATIO, \
+        receiver.checked
+    assert not any("position wanders" in t for t in said)
     said = [(t, c[0].severity) for t, c in zip(said, chunks.values()) if "compass reads" in t]
     logged = [r.getMessage() for r in caplog.records if "compass reads" in r.getMessage()]
     if iron == (0.0, 0.0):
@@ -907,17 +914,23 @@ def joined(msgs) -> list[tuple[str, int]]:
                     for c in chunks.values()]
 
 
-def test_accelerometers_that_wander_from_the_gnss_are_said_once_on_the_link(caplog):
+def test_a_rough_vehicle_s_wandering_sensors_are_said_once_on_the_link(caplog, monkeypatch):
     """The simulator's forward and sideways accelerometers off by an error that changes every 8 s (a
     Gauss-Markov-like wander of 0.6 m/s^2, as a hard-flown copter's levelled accelerometers read): once
     enough adjacent 8 s windows show it (the second minute's check), the ground station is told once, at
     WARNING, with its size, that a bias of a few tenths is within what the vehicle does; the check then
-    lets go of what it held. The clean drive beside the compass's test above measures and says nothing."""
+    lets go of what it held. Its receiver's position wanders too (a Gauss-Markov error of 2 m over 20 s,
+    as an older receiver's): once its fixes span enough time (2 minutes here, not 5, to keep the drive
+    short) it is told once, at WARNING, that the position alarms may be the receiver's own. The clean
+    drive beside the compass's test above measures both and says neither."""
+    monkeypatch.setattr(position_wander, "LIVE_MIN_SPAN_S", 120.0)
     import random
     rng = random.Random(7)
     attacks = tuple(scenario.Attack("bias", "accel", axis, rng.gauss(0.0, 0.6), 8.0 * i, 8.0)
                     for i in range(25) for axis in ("x", "y"))
-    sc = dataclasses.replace(scenario.load("clean"), attacks=attacks)
+    base = scenario.load("clean")
+    sc = dataclasses.replace(base, attacks=attacks, noise=dataclasses.replace(
+        base.noise, gnss_pos_markov_m=2.0, gnss_pos_markov_tau_s=20.0))
     enc, items = scenario_messages(sc, seed=4, until_s=190)
     with caplog.at_level(logging.INFO), in_process() as g:
         peer = g.connect()
@@ -932,3 +945,9 @@ def test_accelerometers_that_wander_from_the_gnss_are_said_once_on_the_link(capl
     assert 0.5 <= size <= 1.3, logged
     wander = next(s for s in g.d.pump.sinks if isinstance(s, LiveWander))
     assert wander.done and not wander.segments and wander.checked[1] >= LIVE_MIN_PAIRS
+    said = [(t, sev) for t, sev in joined(got) if "position wanders" in t]
+    logged = [r.getMessage() for r in caplog.records if "position wanders" in r.getMessage()]
+    assert len(said) == 1 and said[0][1] == WARNING and len(logged) == 1, (said, logged)
+    assert said[0][0] == "GUARD " + logged[0] and "its position alarms may be its own" in logged[0]
+    receiver = next(s for s in g.d.pump.sinks if isinstance(s, position_wander.LivePositionWander))
+    assert receiver.done and receiver.checked > position_wander.SAY_RATIO and not len(receiver.rows)
