@@ -51,7 +51,7 @@ from guard.core.aiding.imu import level
 from guard.core.aiding.tilt import Tilt
 from guard.core.ekf import TH
 from guard.model.events import Estimate
-from guard.runtime.every import Every
+from guard.runtime.every import Live
 from guard.model.samples import Attitude, GnssFix, ImuSample
 
 G = 9.80665
@@ -165,32 +165,19 @@ class Agreement:
         return [r for track, fixes in self.segments if len(r := rows(track, fixes)) >= 2]
 
 
-class LiveWander(Agreement):
+class LiveWander(Live, Agreement):
     """guard run's wander (a sink): `say(line)` once, where the 8 s Allan deviation over the latest
     LIVE_KEEP_S passes WANDER_SAY_MPS2 over at least LIVE_MIN_PAIRS pairs of adjacent windows (see the
     module's docstring). `checked`: the last measure, (Allan deviation or None, adjacent pairs), made at `checked_us`."""
 
     def __init__(self, say):
         super().__init__()
-        self.say = say
-        self.done = False
-        self.said_us: int | None = None             # when it said its line (the samples' clock)
+        self.live(say, LIVE_CHECK_S)
         self.checked: tuple[float | None, int] = (None, 0)
         self.checked_us: int | None = None
-        self._every = Every(LIVE_CHECK_S)
 
-    def on_sample(self, s) -> None:
-        if self.done:
-            return
-        super().on_sample(s)
-        if not isinstance(s, ImuSample):
-            return
-        if self._every.due(s.t_us):
-            self.check(s.t_us)
-
-    def on_events(self, events) -> None:
-        if not self.done:
-            super().on_events(events)
+    def ticks(self, s) -> bool:
+        return isinstance(s, ImuSample)
 
     def check(self, t_us: int) -> None:
         """Measure what it holds at t_us (after letting go of what is older than LIVE_KEEP_S); say the
@@ -202,11 +189,11 @@ class LiveWander(Agreement):
         adev = self.checked[0]
         if adev is None or pairs < LIVE_MIN_PAIRS or adev <= WANDER_SAY_MPS2:
             return
-        self.said_us = t_us
-        self.done = True                            # said once, whatever `say` does
+        self.tell(t_us, f"accelerometers wander {adev:.2f} m/s^2 from the GNSS over {SAY_WINDOW_S:g} s: a bias of a "
+                  "few tenths is within what this vehicle does, its test rarely tells one apart")
+
+    def let_go(self) -> None:
         self.segments, self.track, self.fixes = [], array("d"), array("d")
-        self.say(f"accelerometers wander {adev:.2f} m/s^2 from the GNSS over {SAY_WINDOW_S:g} s: a bias of a few "
-                 "tenths is within what this vehicle does, its test rarely tells one apart")
 
     def _new_segment(self) -> None:
         super()._new_segment()

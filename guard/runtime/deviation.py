@@ -51,7 +51,7 @@ from guard.core.aiding.tilt import Tilt
 from guard.core.monitor import MonitorConfig
 from guard.core.timebase import Timebase
 from guard.model.events import Alarm
-from guard.runtime.every import Every
+from guard.runtime.every import Live
 from guard.model.samples import Attitude, ImuSample
 from guard.model.sensors import Sensor
 
@@ -348,7 +348,7 @@ def compass_fits(h: Headings, report: dict) -> tuple[dict, dict | None, float | 
     return whole, before, first / 1e6
 
 
-class LiveCheck(Headings):
+class LiveCheck(Live, Headings):
     """guard run's compass check (a sink): `say(line)` once, where a fit explains the compass.
 
     At the magnetometer's first alarm it fits the readings before it; every CHECK_S it fits all it
@@ -358,21 +358,12 @@ class LiveCheck(Headings):
 
     def __init__(self, say, cfg: MonitorConfig | None = None):
         super().__init__(LIVE_ROW_S, LIVE_STRETCHES, cfg)
-        self.say = say
-        self.done = False
+        self.live(say, CHECK_S)
         self.before: dict | None = None             # the fit before the magnetometer's first alarm
         self.first_alarm: int | None = None         # ... and its GNSS sample k
-        self.said_us: int | None = None             # when it said its line (the samples' clock)
-        self._every = Every(CHECK_S)
 
-    def on_sample(self, sample) -> None:
-        if self.done:
-            return
-        super().on_sample(sample)
-        if not self.taken:
-            return
-        if self._every.due(sample.t_us):
-            self.check(sample.t_us)
+    def ticks(self, sample) -> bool:
+        return self.taken
 
     def on_events(self, events) -> None:
         if self.done or self.first_alarm is not None:
@@ -386,7 +377,7 @@ class LiveCheck(Headings):
         if explains(self.before):
             self._say(self.before, alarm.t_us)
         elif self.before.get("shown"):      # the turns before it showed a compass that read true: what
-            self._stop()                    # came after is no calibration's
+            self.stop()                     # came after is no calibration's
 
     def check(self, t_us: int) -> None:
         """Fit what it holds (the latest LIVE_ROWS readings) at t_us; say the line, or stop where the
@@ -398,7 +389,7 @@ class LiveCheck(Headings):
         if fit_ is not None:
             self._say(fit_, t_us)
         elif whole.get("shown"):           # turned enough to show an iron, and none explains the compass
-            self._stop()
+            self.stop()
 
     def _say(self, fit_: dict, t_us: int) -> None:
         line = (f"compass reads up to {fit_['max_deviation_deg']:.0f} deg off by heading (fitted on "
@@ -406,12 +397,9 @@ class LiveCheck(Headings):
         if fit_ is not self.before and self.first_alarm is not None:
             line += (f"; or a field came in flight (an attack fits alike): its first alarm, k={self.first_alarm}, "
                      "came before the turns could tell")
-        self.said_us = t_us
-        self._stop()                        # said once, whatever `say` does
-        self.say(line)
+        self.tell(t_us, line)
 
-    def _stop(self) -> None:
-        self.done = True
+    def let_go(self) -> None:
         self.stretches, self.intervals = [], []
 
     def _trim(self) -> None:

@@ -38,7 +38,7 @@ from guard.core.aiding.gnss import GnssAiding
 from guard.core.ekf import FilterConfig
 from guard.core.geo import LocalFrame
 from guard.model.samples import GnssFix
-from guard.runtime.every import Every
+from guard.runtime.every import Live
 
 LAGS_S = (1.0, 2.0, 5.0, 10.0, 20.0, 40.0, 80.0, 160.0)
 MAX_GAP_S = 2.0         # s between fixes past which the velocity is not integrated across
@@ -125,26 +125,19 @@ class PositionWander:
         self.q = array("d", np.asarray(self.q)[keep].tolist())
 
 
-class LivePositionWander(PositionWander):
+class LivePositionWander(Live, PositionWander):
     """guard run's position wander (a sink): `say(line)` once, where the latest LIVE_KEEP_S of fixes,
     spanning LIVE_MIN_SPAN_S at least, wander past SAY_RATIO times the model at SAY_LAG_S (see the
     module's docstring). `checked`: the last ratio (None: not measured), made at `checked_us`."""
 
     def __init__(self, say, filter_cfg: FilterConfig | None = None):
         super().__init__(filter_cfg)
-        self.say = say
-        self.done = False
-        self.said_us: int | None = None             # when it said its line (the samples' clock)
+        self.live(say, LIVE_CHECK_S)
         self.checked: float | None = None
         self.checked_us: int | None = None
-        self._every = Every(LIVE_CHECK_S)
 
-    def on_sample(self, s) -> None:
-        if self.done:
-            return
-        super().on_sample(s)
-        if isinstance(s, GnssFix) and self._every.due(s.t_us):
-            self.check(s.t_us)
+    def ticks(self, s) -> bool:
+        return isinstance(s, GnssFix)
 
     def check(self, t_us: int) -> None:
         """Measure what it holds at t_us (after letting go of what is older than LIVE_KEEP_S); say the
@@ -157,10 +150,11 @@ class LivePositionWander(PositionWander):
         if self.checked is None or self.checked <= SAY_RATIO:
             return
         at = got["lags"][0]
-        self.said_us, self.done = t_us, True        # said once, whatever `say` does
+        self.tell(t_us, f"GNSS position wanders {at['wander_m']:.2f} m over {SAY_LAG_S:g} s from its own velocity, "
+                  f"{self.checked:.1f}x guard's model: its position alarms may be its own (guard tune fits it)")
+
+    def let_go(self) -> None:
         self.rows, self.sigma, self.q = array("d"), array("d"), array("d")
-        self.say(f"GNSS position wanders {at['wander_m']:.2f} m over {SAY_LAG_S:g} s from its own velocity, "
-                 f"{self.checked:.1f}x guard's model: its position alarms may be its own (guard tune fits it)")
 
     def _trim(self, t: float) -> None:
         """Hold the latest LIVE_KEEP_S of the samples' time at t: the newest stretch back from t, then each
