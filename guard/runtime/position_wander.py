@@ -8,7 +8,8 @@ and measures its structure function per axis,
     D(T) = sqrt(E[d^2] / 2),  d = (p(t+T) - p(t)) - integral of v from t to t+T,
 
 against what guard's model of each fix allows for it: its white noise sigma plus the position's random
-walk q_pos_m (both as guard.core.aiding.gnss reads the fix), D(T)^2 = sigma^2 + q^2 T / 2. The
+walk q_pos_m (both as guard.core.aiding.gnss reads the fix, its reported accuracy taken up to what the
+receiver usually reports, as the monitor takes it), D(T)^2 = sigma^2 + q^2 T / 2. The
 position's small-shift test (k = 0.5, about BLOCK fixes: 8 s at 5 Hz) sums what wanders on that time
 scale, so the ratio at SAY_LAG_S is the one `guard replay` says, and past SAY_RATIO it says what it
 means: the receiver's own wander is what its position alarms may be. On the 47 public flights of the
@@ -85,6 +86,7 @@ class PositionWander:
             e, n = e + de, n + dn
         self._last = (s.lat_deg, s.lon_deg, e, n)
         self.rows.extend((t, e, n, s.vel_e_mps, s.vel_n_mps, self._stretch))
+        self.aid.level.hear(s, True)        # its usual figures, which bound what one fix's are taken at
         self.sigma.append(self.aid.sigma_pos(s))
         self.q.append(self.aid.q_pos(s))
 
