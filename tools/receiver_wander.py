@@ -7,7 +7,8 @@ For each log and lag T: the structure function D(T) of the receiver's position l
 velocity's integral, per axis, against what guard's default model of its fixes allows
 (guard.runtime.position_wander says how each figure is made; `guard replay` prints the 10 s one), and
 its growth from 10 to 80 s (0.5 a random walk, 1 a drift, 0 a bounded error). The totals: at 10 and
-80 s, how many logs wander past the model, and the growth's median. A log guard cannot read is named
+80 s, how many logs wander past the model; which wander further at 10 s than the largest random walk
+guard tune fits allows (a fault or a spoof); and the growth's median. A log guard cannot read is named
 with the reason and skipped.
 """
 
@@ -24,7 +25,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from guard.config import load                          # noqa: E402
 from guard.errors import GuardError                    # noqa: E402
-from guard.runtime.position_wander import LAGS_S, LONG_S, SHORT_S, PositionWander, ratio_at   # noqa: E402
+from guard.runtime.position_wander import (LAGS_S, LONG_S, SAY_LAG_S, SHORT_S, PositionWander,  # noqa: E402
+                                           beyond_tune, ratio_at)
 from guard.runtime.replay import replay                # noqa: E402
 from tools.real_logs import logs_in                    # noqa: E402
 
@@ -64,6 +66,10 @@ def summary(results: list[dict]) -> list[str]:
             lines.append(f"at {lag:g} s: {len(ratios)} logs, wander over the model's {statistics.median(ratios):.2f} "
                          f"times at the median; past twice the model on {sum(1 for x in ratios if x > 2.0)}, "
                          f"within it on {sum(1 for x in ratios if x <= 1.0)}")
+    beyond = [f"{Path(r['log']).parent.name}/{Path(r['log']).name}" for r in done if beyond_tune(r)]
+    if any(ratio_at(r) is not None for r in done):
+        lines.append(f"past what the largest walk guard tune fits allows at {SAY_LAG_S:g} s (a fault or a spoof, not "
+                     f"a receiver's usual wander): {len(beyond)} logs{': ' + ', '.join(beyond) if beyond else ''}")
     exps = [r["exponent"] for r in done if "exponent" in r]
     if exps:
         lines.append(f"growth from {SHORT_S:g} to {LONG_S:g} s: T^{statistics.median(exps):.2f} at the median "

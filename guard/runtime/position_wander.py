@@ -12,7 +12,11 @@ walk q_pos_m (both as guard.core.aiding.gnss reads the fix, its reported accurac
 receiver usually reports, as the monitor takes it), D(T)^2 = sigma^2 + q^2 T / 2. The
 position's small-shift test (k = 0.5, about BLOCK fixes: 8 s at 5 Hz) sums what wanders on that time
 scale, so the ratio at SAY_LAG_S is the one `guard replay` says, and past SAY_RATIO it says what it
-means: the receiver's own wander is what its position alarms may be. On the 47 public flights of the
+means: the receiver's own wander is what its position alarms may be, and guard tune fits it; or, past
+the model with the largest random walk guard tune fits (`tunable`: Q_POS_MAX times the default, the
+bound of its position_walk), that no model of a receiver's own slow error covers it: a fault or a
+spoof, glitches or jumps of tens of metres (on the 70 public logs of the README, the Erle copter's
+genuine GPS glitches and the METU car's receiver, which jumps 57 m, and no other). On the 47 public flights of the
 README, 6 of the 9 past 1.5 raised a position alarm (13 of the 21) and 3 of the other 38 did (8); on 23
 public logs that no figure of guard was set on, 2 of 3 (11 alarms) and none of 20 (`python
 tools/receiver_wander.py FOLDERS` beside `python tools/real_logs.py FOLDERS`). Its growth from 10 to 80 s tells the kind of error: an
@@ -40,6 +44,7 @@ from guard.core.ekf import FilterConfig
 from guard.core.geo import LocalFrame
 from guard.model.samples import GnssFix
 from guard.runtime.every import Live
+from guard.runtime.tune import Q_POS_MAX
 
 LAGS_S = (1.0, 2.0, 5.0, 10.0, 20.0, 40.0, 80.0, 160.0)
 MAX_GAP_S = 2.0         # s between fixes past which the velocity is not integrated across
@@ -95,18 +100,20 @@ class PositionWander:
 
     def measure(self, lags=LAGS_S) -> dict | None:
         """{"fixes", "rate_hz", "speed_mps", "sigma_m", "q_pos_m", "lags": [{"lag_s", "wander_m",
-        "model_m"}], "exponent"?}, or None with fewer than MIN_PAIRS fixes."""
+        "model_m", "tunable_m"}], "exponent"?}, or None with fewer than MIN_PAIRS fixes. `tunable_m`:
+        the model with the largest random walk guard tune fits (`tunable`)."""
         if len(self.sigma) < MIN_PAIRS:
             return None
         a = self._array()
         d = structure(a[:, 0], a[:, 1:3], a[:, 3:5], a[:, 5], lags)
         sigma, q = float(np.median(self.sigma)), float(np.median(self.q))
+        q_most = q * tunable(self.aid.f.q_pos_m)
         dt = np.diff(a[:, 0])
         out = {"fixes": len(a), "rate_hz": round(1.0 / float(np.median(dt[dt > 0])), 1) if np.any(dt > 0) else None,
                "speed_mps": round(float(np.median(np.hypot(a[:, 3], a[:, 4]))), 2),
                "sigma_m": round(sigma, 3), "q_pos_m": round(q, 3),
-               "lags": [{"lag_s": lag, "wander_m": round(x, 3), "model_m": round(model(sigma, q, lag), 3)}
-                        for lag, x in d.items()]}
+               "lags": [{"lag_s": lag, "wander_m": round(x, 3), "model_m": round(model(sigma, q, lag), 3),
+                         "tunable_m": round(model(sigma, q_most, lag), 3)} for lag, x in d.items()]}
         if d.get(SHORT_S) and LONG_S in d:
             out["exponent"] = round(math.log(d[LONG_S] / d[SHORT_S]) / math.log(LONG_S / SHORT_S), 2)
         return out
@@ -152,8 +159,10 @@ class LivePositionWander(Live, PositionWander):
         if self.checked is None or self.checked <= SAY_RATIO:
             return
         at = got["lags"][0]
+        meaning = "a receiver fault or a spoof, beyond what guard tune fits" if beyond_tune(got) else \
+            "its position alarms may be its own (guard tune fits it)"
         self.tell(t_us, f"GNSS position wanders {at['wander_m']:.2f} m over {SAY_LAG_S:g} s from its own velocity, "
-                  f"{self.checked:.1f}x guard's model: its position alarms may be its own (guard tune fits it)")
+                  f"{self.checked:.1f}x guard's model: {meaning}")
 
     def let_go(self) -> None:
         self.rows, self.sigma, self.q = array("d"), array("d"), array("d")
@@ -217,6 +226,20 @@ def model(sigma: float, q: float, lag: float) -> float:
     return math.sqrt(sigma * sigma + q * q * lag / 2.0)
 
 
+def tunable(q_pos_m: float) -> float:
+    """How many times the configured random walk q_pos_m guard tune raises it at the most (its
+    position_walk: up to Q_POS_MAX times the default, never lowered)."""
+    return max(Q_POS_MAX * FilterConfig().q_pos_m / q_pos_m, 1.0)
+
+
+def beyond_tune(result: dict | None, lag: float = SAY_LAG_S) -> bool:
+    """Whether the wander at `lag` is further than any random walk guard tune fits allows: no model of
+    a receiver's own slow error covers it, and its position is faulty or attacked (glitches of tens of
+    metres, a spoof's jumps), not a model to tune."""
+    at = next((r for r in (result or {}).get("lags", ()) if r["lag_s"] == lag), None)
+    return at is not None and at["wander_m"] > max(at["tunable_m"], SAY_RATIO * at["model_m"])
+
+
 def ratio_at(result: dict | None, lag: float = SAY_LAG_S) -> float | None:
     """The wander over the model's at a lag (None where it was not measured)."""
     return next((r["wander_m"] / r["model_m"] for r in (result or {}).get("lags", ()) if r["lag_s"] == lag), None)
@@ -230,7 +253,10 @@ def said(result: dict | None) -> str | None:
     ratio = at["wander_m"] / at["model_m"]
     line = (f"the receiver's position against its own velocity: it wanders {at['wander_m']:.2f} m over "
             f"{SAY_LAG_S:g} s (per axis), {ratio:.1f} times what guard's model of it allows")
-    if ratio > SAY_RATIO:
+    if beyond_tune(result):
+        line += (f": further than any walk guard tune fits allows ({at['tunable_m']:.2f} m), so not the receiver's "
+                 "usual wander but a fault or a spoof (glitches, jumps), which its position alarms are right to flag")
+    elif ratio > SAY_RATIO:
         line += (": its position alarms may be its own wander (guard tune fits the model's random walk, "
                  "filter.q_pos_m, to its clean logs)")
     return line

@@ -58,5 +58,7 @@ def test_the_tool_measures_each_log_and_the_totals_and_names_a_missing_one(share
     results = json.loads((tmp_path / "out.json").read_text())
     assert len(results) == 2 and all(r["lags"] and ratio_at(r) < 1.0 for r in results), results
     assert got.stdout.count("wander/model (m): 1s") == 2 and "at 10 s: 2 logs" in got.stdout, got.stdout
+    assert "past what the largest walk guard tune fits allows at 10 s (a fault or a spoof, not a receiver's usual " \
+        "wander): 0 logs" in got.stdout, got.stdout
     got = subprocess.run([*tool, str(tmp_path / "absent.bin")], capture_output=True, text=True, timeout=60)
     assert got.returncode == 1 and got.stderr.strip() == f"guard: {tmp_path / 'absent.bin'}: no such file or folder"

@@ -11,8 +11,9 @@ import pytest
 from guard.core.ekf import FilterConfig
 from guard.model.samples import GnssFix
 from guard.runtime.position_wander import (LIVE_CHECK_S, LIVE_KEEP_S, LIVE_MIN_SPAN_S, LIVE_SEGMENTS, MIN_PAIRS,
-                                           SAY_LAG_S, SAY_RATIO, LivePositionWander, PositionWander, model, ratio_at,
-                                           said, structure)
+                                           SAY_LAG_S, SAY_RATIO, LivePositionWander, PositionWander, beyond_tune, model,
+                                           ratio_at, said, structure)
+from guard.runtime.tune import Q_POS_MAX, position_walk
 
 HZ = 5.0
 LAT0, LON0 = 47.397742, 8.545594
@@ -126,6 +127,39 @@ def test_guard_run_says_a_wandering_receiver_once_and_lets_go_and_a_quiet_one_ne
     assert lines == [] and w.checked is not None and w.checked < 1.0
     held = w._array()[:, 0]
     assert held[-1] - held[0] <= LIVE_KEEP_S + LIVE_CHECK_S + 1.0, "the latest 10 minutes, no more"
+
+
+@pytest.mark.parametrize("seed", [4, 5])
+def test_a_receiver_further_than_any_tuned_walk_is_said_to_be_faulty_or_attacked(seed):
+    """A position walking at 3 m/sqrt(s) against its own velocity (glitches of metres every second):
+    further than the largest walk guard tune fits (Q_POS_MAX times the default, its position_walk's
+    bound), so guard replay and guard run say a receiver fault or a spoof, not a model to tune. The
+    0.4 m/sqrt(s) walk of the test above stays within what tune fits. A profile whose walk is already
+    at tune's most has nothing further to fit: its line is the fault's past SAY_RATIO only (a walk of 5
+    m/sqrt(s) against its 2)."""
+    f = FilterConfig()
+    assert position_walk((1.0, 1e3), f.q_pos_m, f.q_pos_m)[1] == pytest.approx(Q_POS_MAX * f.q_pos_m)
+    walk = PositionWander()
+    for s in walking(600.0, q=3.0, seed=seed):
+        walk.on_sample(s)
+    got = walk.measure()
+    at = next(r for r in got["lags"] if r["lag_s"] == SAY_LAG_S)
+    assert at["tunable_m"] == pytest.approx(model(f.gnss_pos_sigma_m, Q_POS_MAX * f.q_pos_m, SAY_LAG_S), abs=1e-3)
+    assert beyond_tune(got) and "a fault or a spoof" in said(got) and "may be its own" not in said(got)
+    usual = PositionWander()
+    for s in walking(600.0, q=0.4, seed=seed):
+        usual.on_sample(s)
+    assert not beyond_tune(usual.measure()) and "may be its own wander" in said(usual.measure())
+    w, lines = live(walking(900.0, q=3.0, seed=seed))
+    assert len(lines) == 1 and "a receiver fault or a spoof" in lines[0] and "may be its own" not in lines[0], lines
+    most = PositionWander(FilterConfig(q_pos_m=Q_POS_MAX * f.q_pos_m))
+    for s in walking(600.0, q=5.0, seed=seed):         # 2.5 times that walk: past SAY_RATIO
+        most.on_sample(s)
+    got = most.measure()
+    at = next(r for r in got["lags"] if r["lag_s"] == SAY_LAG_S)
+    assert at["tunable_m"] == at["model_m"] and SAY_RATIO * at["model_m"] < at["wander_m"] and beyond_tune(got)
+    scaled = dict(got, lags=[dict(r, wander_m=1.2 * r["model_m"]) for r in got["lags"]])
+    assert not beyond_tune(scaled), "within SAY_RATIO of the model: nothing said, whatever tune may fit"
 
 
 def test_its_figure_is_that_of_the_latest_ten_minutes_and_a_boot_loop_holds_no_more():
