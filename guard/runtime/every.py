@@ -30,9 +30,10 @@ class Every:
 
 class Live:
     """The live side of a measuring sink (mixed in before it: `class LiveWander(Live, Agreement)`, its
-    `__init__` calling `live`): it listens until `done`, checks every `period_s` of the samples' time on the samples `ticks` accepts,
-    and says its line once (`tell`, a WARNING on the link and in the log), after which it lets go of
-    what it held (`let_go`) and listens no more. `said_us`: when it spoke, on the samples' clock."""
+    `__init__` calling `live` first thing): it listens until `done`, checks every `period_s` of the
+    samples' time on the samples `ticks` accepts, and says its line once (`tell`, a WARNING on the link
+    and in the log), after which it lets go of what it held (`let_go`) and listens no more. `said_us`:
+    when it spoke, on the samples' clock."""
 
     def live(self, say: Callable[[str], None], period_s: float) -> None:
         self.say = say

@@ -93,10 +93,10 @@ def test_the_sink_measures_what_the_fixes_carry_and_says_a_wander_past_the_model
 
 
 def test_a_receiver_that_always_calls_itself_poor_is_modelled_as_the_monitor_takes_it():
-    """A receiver that reports h_acc 12 m fix after fix: the monitor takes a fix's figure up to 1.5
-    times what the receiver usually reports (guard.core.aiding.receiver), here 4.8 m of noise, over the
-    fixed 10 floors (3.5 m) a receiver's figures are taken at before anything is heard; the sink's model
-    of each fix is the monitor's, not the tighter one."""
+    """A receiver that reports h_acc 12 m fix after fix (4.8 m of noise): the monitor caps a fix's noise
+    at 1.5 times what the receiver usually reports (guard.core.aiding.receiver), here 7.2 m, over the
+    fixed 10 floors (3.5 m) it caps it at before anything is heard, so it takes the 4.8 m; the sink's
+    model of each fix is the monitor's, not the tighter one."""
     walk = PositionWander()
     for s in fixes(300.0, lambda t, rng: rng.normal(0.0, 0.1, (len(t), 2)), h_acc=12.0):
         walk.on_sample(s)
