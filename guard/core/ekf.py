@@ -79,6 +79,11 @@ def body_velocity(theta: float, ve: float, vn: float) -> tuple[float, float]:
     return cs * ve + sn * vn, -sn * ve + cs * vn
 
 
+# the most guard tune raises the position's random walk to, times its default (guard.runtime.tune's
+# position_walk); guard.runtime.position_wander says which receivers wander further than that allows
+Q_POS_MAX = 20.0
+
+
 @dataclass(frozen=True)
 class FilterConfig:
     """Noise model of the filter (1-sigma). Process noise is given per second (random-walk rates)."""

@@ -14,8 +14,8 @@ calm ones), D(T)^2 = sigma^2 + q^2 T / 2. The
 position's small-shift test (k = 0.5, about BLOCK fixes: 8 s at 5 Hz) sums what wanders on that time
 scale, so the ratio at SAY_LAG_S is the one `guard replay` says, and past SAY_RATIO it says what it
 means: the receiver's own wander is what its position alarms may be, and guard tune fits it; or, past
-the model with the largest random walk guard tune fits (`tunable`: position_walk's bound, Q_POS_MAX
-times the default), that no walk of a receiver's own slow error covers it: a fault or a spoof,
+the model with the largest random walk guard tune fits (`tunable`: Q_POS_MAX times the default, the
+bound of tune's position_walk), that no walk of a receiver's own slow error covers it: a fault or a spoof,
 glitches or jumps of tens of metres (on the 70 public logs of the README, the Erle copter's genuine
 GPS glitches and the METU car's receiver, which jumps 57 m, and no other). guard tune would still take
 such a log, putting what the walk cannot hold into the position's noise floor: a blunter test, which
@@ -44,11 +44,10 @@ from array import array
 import numpy as np
 
 from guard.core.aiding.gnss import GnssAiding
-from guard.core.ekf import FilterConfig
+from guard.core.ekf import Q_POS_MAX, FilterConfig
 from guard.core.geo import LocalFrame
 from guard.model.samples import GnssFix
 from guard.runtime.every import Live
-from guard.runtime.tune import position_walk
 
 LAGS_S = (1.0, 2.0, 5.0, 10.0, 20.0, 40.0, 80.0, 160.0)
 MAX_GAP_S = 2.0         # s between fixes past which the velocity is not integrated across
@@ -233,10 +232,10 @@ def model(sigma: float, q: float, lag: float) -> float:
 
 
 def tunable(q_pos_m: float) -> float:
-    """How many times the configured random walk q_pos_m guard tune raises it at the most: its
-    position_walk's walk for a wander beyond any bound (up to Q_POS_MAX times the default, never
-    lowered)."""
-    return position_walk((1.0, math.inf), q_pos_m, FilterConfig().q_pos_m)[1] / q_pos_m
+    """How many times the configured random walk q_pos_m guard tune raises it at the most: as its
+    position_walk does for a wander beyond any bound, up to Q_POS_MAX times the default, never lowered
+    (tests/unit/test_position_wander.py holds the two together)."""
+    return max(Q_POS_MAX * FilterConfig().q_pos_m, q_pos_m) / q_pos_m
 
 
 def beyond_tune(result: dict | None, lag: float = SAY_LAG_S) -> bool:

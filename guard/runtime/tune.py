@@ -66,7 +66,7 @@ import tomli_w
 from guard.config import Config, table
 from guard.core.aiding.imu import lateral_rows
 from guard.core.aiding.receiver import USUAL_MARGIN, UsualWorst
-from guard.core.ekf import BM, KS, LA, FilterConfig
+from guard.core.ekf import BM, KS, LA, Q_POS_MAX, FilterConfig
 from guard.core.longrun import BLOCK, F_MAX, BlockMeans, normalised
 from guard.errors import GuardError
 from guard.model.events import Estimate, Tested
@@ -78,7 +78,6 @@ from guard.sinks.base import Sink
 DELAYS = (0.0, 0.05, 0.1, 0.15, 0.2, 0.25)
 MARGIN = 1.25           # the fitted noise is this much above what the logs show
 BOUNDS = (0.5, 20.0)    # a floor is scaled within these factors of its default
-Q_POS_MAX = 20.0        # the position's random walk is raised up to this many times its default (position_walk)
 PASSES = 3
 MIN_BLOCKS = 10         # block means (times channels) before the wander is taken
 NEAR = 0.7              # a tuning log's test this near its threshold, on a sensor the model does not fit

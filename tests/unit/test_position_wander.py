@@ -8,12 +8,12 @@ import math
 import numpy as np
 import pytest
 
-from guard.core.ekf import FilterConfig
+from guard.core.ekf import Q_POS_MAX, FilterConfig
 from guard.model.samples import GnssFix
 from guard.runtime.position_wander import (LIVE_CHECK_S, LIVE_KEEP_S, LIVE_MIN_SPAN_S, LIVE_SEGMENTS, MIN_PAIRS,
                                            SAY_LAG_S, SAY_RATIO, LivePositionWander, PositionWander, beyond_tune, model,
-                                           ratio_at, said, structure)
-from guard.runtime.tune import Q_POS_MAX, position_walk
+                                           ratio_at, said, structure, tunable)
+from guard.runtime.tune import position_walk
 
 HZ = 5.0
 LAT0, LON0 = 47.397742, 8.545594
@@ -138,7 +138,8 @@ def test_a_receiver_further_than_any_tuned_walk_is_said_to_be_faulty_or_attacked
     at tune's most has nothing further to fit: its line is the fault's past SAY_RATIO only (a walk of 5
     m/sqrt(s) against its 2)."""
     f = FilterConfig()
-    assert position_walk((1.0, 1e3), f.q_pos_m, f.q_pos_m)[1] == pytest.approx(Q_POS_MAX * f.q_pos_m)
+    for q in (0.05, f.q_pos_m, 0.5, 3.0):           # tunable is tune's own bound, whatever the profile
+        assert position_walk((1.0, math.inf), q, f.q_pos_m)[1] == pytest.approx(q * tunable(q))
     walk = PositionWander()
     for s in walking(600.0, q=3.0, seed=seed):
         walk.on_sample(s)
