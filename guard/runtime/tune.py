@@ -43,7 +43,10 @@ threshold per sensor (1.0 is an alarm). The profile is what it fitted; the file 
 and, so that it works alone with --config, the settings of the config it started from that differ
 from guard's defaults (a vehicle set to "ground" changes the fit, and a file that dropped it would
 run another model than the one tuned).
-Logs that hold an attack, or a sensor fault, would teach guard to accept it: give clean ones.
+Logs that hold an attack, or a sensor fault, would teach guard to accept it: give clean ones. A log whose
+receiver's position wanders from its own velocity further than the largest walk tune fits (a fault or
+a spoof: guard.runtime.position_wander.beyond_tune, against the model the tuning starts from, measured in
+the first latency's replays) is named, as it is tuned on.
 
 Each step replays every log once (the latency's, every log at every delay; the first noise pass takes
 the latency's replays at the delay it chose, the same config), 10 or 11 replays of each log in all;
@@ -72,6 +75,7 @@ from guard.errors import GuardError
 from guard.model.events import Estimate, Tested
 from guard.model.samples import GnssFix
 from guard.model.sensors import Sensor
+from guard.runtime.position_wander import SAY_LAG_S, PositionWander, beyond_tune
 from guard.runtime.replay import replay
 from guard.sinks.base import Sink
 
@@ -153,14 +157,32 @@ class Innovations(Sink):
 
 
 class Figures(Sink):
-    """A log's receiver: its worst usual accuracy figures (UsualWorst)."""
+    """A log's receiver: its worst usual accuracy figures (UsualWorst), and how far its position wanders
+    from its own velocity against the model (guard.runtime.position_wander)."""
 
-    def __init__(self):
+    def __init__(self, filter_cfg: FilterConfig | None = None):
         self.worst = UsualWorst()
+        self.wander = PositionWander(filter_cfg)
 
     def on_sample(self, sample) -> None:
         if isinstance(sample, GnssFix):
             self.worst.hear(sample)
+            self.wander.on_sample(sample)
+
+
+def faulty(logs: list[str], figures: list[Figures]) -> list[str]:
+    """What to say of each log whose receiver wanders from its own velocity further than the largest walk
+    tune fits allows (position_wander.beyond_tune): a fault or a spoof in a log given as clean."""
+    out = []
+    for log, fig in zip(logs, figures):
+        got = fig.wander.measure((SAY_LAG_S,))
+        if beyond_tune(got):
+            at = got["lags"][0]
+            out.append(f"{Path(log).name}: its receiver's position wanders {at['wander_m']:.2f} m over {SAY_LAG_S:g} s "
+                       f"from its own velocity, past the largest walk guard tune fits ({at['tunable_m']:.2f} m): "
+                       "a fault or a spoof, not its usual wander; a profile tuned on it has a blunter position test "
+                       "(give clean logs)")
+    return out
 
 
 def usual_max(figures: list[Figures]) -> dict[str, float]:
@@ -204,7 +226,7 @@ def with_filter(cfg: Config, **changes) -> Config:
 def replay_one(job: tuple[str, Config, bool]) -> tuple[Innovations, Figures | None, dict]:
     """One log replayed with cfg: its innovations, its receiver's figures (if asked) and its report."""
     log, cfg, with_figures = job
-    one, fig = Innovations(), (Figures() if with_figures else None)
+    one, fig = Innovations(), (Figures(cfg.monitor.filter) if with_figures else None)
     report = replay(log, cfg, listeners=[one] if fig is None else [one, fig])
     return one, fig, report
 
@@ -303,7 +325,11 @@ def tune(logs: list[str], base: Config, say: Callable[[str], None] = print, jobs
 
 def _tune(logs: list[str], base: Config, say: Callable[[str], None], replays: Replays) -> tuple[dict, Config]:
     # 1. the receiver's latency: every delay's replays at once
-    results = replays.run([(log, with_filter(base, gnss_delay_s=delay), False) for delay in DELAYS for log in logs])
+    results = replays.run([(log, with_filter(base, gnss_delay_s=delay), delay == DELAYS[0])
+                           for delay in DELAYS for log in logs])
+    # a receiver that wanders past the largest walk tune fits, against the model the tuning starts from
+    for line in faulty(logs, [fig for _, fig, _ in results[:len(logs)]]):
+        say(line)
     scores = []
     for i, delay in enumerate(DELAYS):
         sink, _ = pooled(results[i * len(logs):(i + 1) * len(logs)])

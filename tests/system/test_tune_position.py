@@ -50,7 +50,9 @@ def first_after(path: str, k0: int, cfg) -> dict | None:
 def test_the_position_s_wander_is_a_random_walk_and_a_step_is_still_caught(drives, monkeypatch):
     # the simulator's receiver has no latency: the search for one is test_tune.py's
     monkeypatch.setattr(tune_module, "DELAYS", (0.0,))
-    profile, cfg = tune([drives[1], drives[2]], Config(), say=lambda line: None)
+    said = []
+    profile, cfg = tune([drives[1], drives[2]], Config(), say=said.append)
+    assert not any("a fault or a spoof" in line for line in said), "a receiver's usual wander, which tune fits"
     fitted, default = profile["filter"], FilterConfig()
     assert fitted["q_pos_m"] > 3 * default.q_pos_m, fitted
     assert fitted["gnss_pos_unreported_m"] <= default.gnss_pos_unreported_m, fitted
@@ -65,6 +67,23 @@ def test_the_position_s_wander_is_a_random_walk_and_a_step_is_still_caught(drive
     assert profile["filter"]["gnss_pos_unreported_m"] > 4 * default.gnss_pos_unreported_m, profile
     late = [first_after(*drives[("step", seed)], cfg) for seed in ATTACKED]
     assert sum(a is None or a["gnss_index"] - drives[("step", s)][1] > 10 for a, s in zip(late, ATTACKED)) >= 2, late
+
+
+def test_a_log_whose_receiver_wanders_past_what_tune_fits_is_named(drives, tmp_path, monkeypatch):
+    """A receiver whose position wanders by tens of metres within seconds (a Gauss-Markov error of 25 m
+    over 5 s: glitches, or a spoof) beside a usual one: guard tune names it, a fault or a spoof, as it
+    tunes on it, and not the other."""
+    base = scn.load("clean")
+    glitching = dataclasses.replace(base, duration_s=DURATION_S, noise=dataclasses.replace(
+        base.noise, gnss_pos_markov_m=25.0, gnss_pos_markov_tau_s=5.0))
+    odd = str(tmp_path / "glitching.tlog")
+    run(glitching, 6, tlog=odd)
+    monkeypatch.setattr(tune_module, "DELAYS", (0.0,))
+    monkeypatch.setattr(tune_module, "PASSES", 1)
+    said = []
+    tune([drives[1], odd], Config(), say=said.append)
+    named = [line for line in said if "a fault or a spoof" in line]
+    assert len(named) == 1 and named[0].startswith("glitching.tlog: its receiver's position wanders"), said
 
 
 def test_the_walk_is_raised_by_the_wander_only_and_within_its_bounds():
