@@ -15,16 +15,17 @@ position's small-shift test (k = 0.5, about BLOCK fixes: 8 s at 5 Hz) sums what 
 scale, so the ratio at SAY_LAG_S is the one `guard replay` says, and past SAY_RATIO it says what it
 means: the receiver's own wander is what its position alarms may be, and guard tune fits it; or, past
 the model with the largest random walk guard tune fits (`tunable`: Q_POS_MAX times the default, the
-bound of tune's position_walk), that no walk of a receiver's own slow error covers it: a fault or a spoof,
-glitches or jumps of tens of metres (on the 70 public logs of the README, the Erle copter's genuine
-GPS glitches and the METU car's receiver, which jumps 57 m, and no other). guard tune would still take
-such a log, putting what the walk cannot hold into the position's noise floor: a blunter test, which
-the line warns against. The bound has no margin: a receiver near it (the METU car reads 1.16 times
-it) may read either side of it from one flight, or one live check, to the next. On the 47 public flights of the
-README, 6 of the 9 past 1.5 raised a position alarm (13 of the 21) and 3 of the other 38 did (8); on 23
-public logs that no figure of guard was set on, 2 of 3 (11 alarms) and none of 20 (`python
-tools/receiver_wander.py FOLDERS` beside `python tools/real_logs.py FOLDERS`). Its growth from 10 to 80 s tells the kind of error: an
-exponent of 0.5 is a random walk (the model's), 1 a drift held for tens of seconds, 0 a bounded one.
+bound of tune's position_walk), that no walk of a receiver's own slow error covers it: a fault or a
+spoof, glitches or jumps of tens of metres (on the 70 public logs of the README, the Erle copter's
+genuine GPS glitches and the METU car's receiver, which jumps 57 m, and no other). guard tune would
+still take such a log, putting what the walk cannot hold into the position's noise floor: a blunter
+test, which the line warns against. The bound has no margin: a receiver near it (the METU car reads 1.16
+times it) may read either side of it from one flight, or one live check, to the next. On the 47 public
+flights of the README, 6 of the 9 past 1.5 raised a position alarm (13 of the 21) and 3 of the other 38
+did (8); on 23 public logs that no figure of guard was set on, 2 of 3 (11 alarms) and none of 20
+(`python tools/receiver_wander.py FOLDERS` beside `python tools/real_logs.py FOLDERS`). Its growth from
+10 to 80 s tells the kind of error: an exponent of 0.5 is a random walk (the model's), 1 a drift held
+for tens of seconds, 0 a bounded one.
 
 Fixes without a velocity are left out, and no velocity is integrated across a gap over MAX_GAP_S or a
 clock gone back (a reboot starts a new stretch). Each fix's step from the one before is taken in the
