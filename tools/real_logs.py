@@ -52,7 +52,7 @@ from guard.core.aiding.motors import OPEN_S          # noqa: E402
 from guard.core.geo import LocalFrame                # noqa: E402
 from guard.model.samples import GnssFix, ImuSample   # noqa: E402
 from guard.runtime.agreement import LiveWander                                         # noqa: E402
-from guard.runtime.position_wander import LivePositionWander                           # noqa: E402
+from guard.runtime.position_wander import LivePositionWander, PositionWander, beyond_tune   # noqa: E402
 from guard.runtime.deviation import SAY_DEG, Headings, LiveCheck, compass_fits, said   # noqa: E402
 from guard.runtime.replay import replay              # noqa: E402
 import pymap3d                                       # noqa: E402
@@ -235,7 +235,8 @@ def one(job: tuple[str, str | None, tuple[str, ...], tuple[str, ...], bool]) -> 
         wanders = LiveWander(wander.append)
         position: list[str] = []                            # ... and of the receiver's position
         positions = LivePositionWander(position.append, cfg.monitor.filter)
-        r = replay(path, cfg, listeners=[span, headings, check, wanders, positions])
+        receiver = PositionWander(cfg.monitor.filter)       # the whole log's, as guard replay measures it
+        r = replay(path, cfg, listeners=[span, headings, check, wanders, positions, receiver])
     except GuardError as e:
         return {"log": path, "error": str(e)}
     iron, before, first_s = compass_fits(headings, r)       # as guard replay fits it
@@ -246,6 +247,7 @@ def one(job: tuple[str, str | None, tuple[str, ...], tuple[str, ...], bool]) -> 
            "estimate_to_fix_m": r["estimate_to_fix_m"],
            "warnings": [n["text"] for n in r["notices"] if n["level"] == "warning"], "attacks": {},
            "receiver_jump_m": round(span.jump, 2), "new_after_motors_s": after_motors(r),
+           "receiver_beyond_tune": beyond_tune(receiver.measure()),
            "compass_deviation": {**iron, **({"before_first_alarm": before} if before else {})},
            "compass_said": said(iron, before, first_s),
            "compass_said_live": None if not live else {
@@ -373,6 +375,11 @@ def main(argv=None) -> int:
     print(f"{n} logs, {hours:.2f} h: {sum(total.values())} alarms ({by}); {standing} of them a standing "
           f"alarm again; {quiet} logs without one; "
           f"the estimate over 5 m from the fix at {100 * far_fixes / max(fixes, 1):.1f} % of {fixes} fixes")
+    faulty = [r for r in results if r.get("receiver_beyond_tune")]
+    if faulty:
+        named = ", ".join(f"{Path(r['log']).parent.name}/{Path(r['log']).name}" for r in faulty)
+        print(f"guard replay says the receiver's position wanders past the largest walk guard tune fits (a fault or "
+              f"a spoof) on {len(faulty)} ({named}), which raised {sum(r['n_alarms'] for r in faulty)} of the alarms")
     off = [r for r in results if r.get("compass_said")]
     if off:
         sure = sum(1 for r in off if "before its first alarm" in r["compass_said"])

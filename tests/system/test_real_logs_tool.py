@@ -34,6 +34,8 @@ def test_a_folder_of_logs_is_a_line_each_and_the_totals(shared, tmp_path):
     assert all(r["compass_said"] is None and r["compass_said_live"] is None for r in results if "error" not in r)
     # ArduPilot's SITL: its levelled accelerometers agree with its GNSS (README), so guard run would not say they wander
     assert all(r["wander_said_live"] is None for r in results if "error" not in r)
+    # nor that its receiver wanders past what guard tune fits (a fault or a spoof: README)
+    assert all(r["receiver_beyond_tune"] is False for r in results if "error" not in r)
 
 
 def test_a_bad_key_or_folder_is_named_and_nothing_runs(tmp_path):
