@@ -327,8 +327,10 @@ def _tune(logs: list[str], base: Config, say: Callable[[str], None], replays: Re
     # 1. the receiver's latency: every delay's replays at once
     results = replays.run([(log, with_filter(base, gnss_delay_s=delay), delay == DELAYS[0])
                            for delay in DELAYS for log in logs])
-    # a receiver that wanders past the largest walk tune fits, against the model the tuning starts from
-    for line in faulty(logs, [fig for _, fig, _ in results[:len(logs)]]):
+    # each log's receiver, heard once (its figures do not depend on the config): a receiver that wanders
+    # past the largest walk tune fits, against the model the tuning starts from, and its usual figures (4.)
+    figures: list[Figures] = [fig for _, fig, _ in results[:len(logs)]]
+    for line in faulty(logs, figures):
         say(line)
     scores = []
     for i, delay in enumerate(DELAYS):
@@ -355,8 +357,7 @@ def _tune(logs: list[str], base: Config, say: Callable[[str], None], replays: Re
                 changes[key] = min(max(getattr(cfg.monitor.filter, key) * f * MARGIN, lo), hi)
         cfg = with_filter(cfg, **changes)
     # 3. the compass's offset
-    figures: list[Figures] = []
-    sink, reports = measure(logs, cfg, figures=figures, replays=replays)
+    sink, reports = measure(logs, cfg, replays=replays)
     if sink.mag_offset is not None:
         # an air vehicle's slip and lever arm are never learnt: they stay where they started, and the
         # profile leaves them out
