@@ -199,7 +199,8 @@ class Judge:
         return self.health.readmit(sensor, t_us, gnss_index, silent)
 
     def reanchor(self, ekf: NavEKF, fix: GnssFix, en: tuple[float, float], gnss_aid, max_coast_m: float,
-                 gnss_index: int, widen: Callable[[float], float] | None = None, held: bool = False) -> list[Event]:
+                 gnss_index: int, widen: Callable[[float], float] | None = None, held: bool = False,
+                 gnss_only: bool = False) -> list[Event]:
         """An exclusion has a bounded life: once the other sensors cannot hold the estimate to within
         max_coast_m (1 sigma), the GNSS can be neither confirmed nor refuted; the estimate is
         re-anchored on it, and its alarm stands (latched, no Cleared). What a patient attacker gains:
@@ -207,7 +208,10 @@ class Judge:
         Asked at each fix while the GNSS is out, and at once after an alarm's rewind (Monitor.finish),
         whose estimate may already be beyond holding (GNSS alone: nothing else held it). `widen`: the
         filter's uncertainty as far as the drift measured on this vehicle makes it (guard.core.drift). `held`:
-        the fix's course was held by its receiver (GnssAiding.held_course), its velocity's direction unknown."""
+        the fix's course was held by its receiver (GnssAiding.held_course), its velocity's direction unknown.
+        `gnss_only`: the GNSS is tested alone (no IMU integrated): with its position and velocity both
+        set aside nothing else holds the estimate, and the line says so rather than a figure of the
+        random walk's (thousands of metres after a rewind) that means nothing to an operator."""
         filtered = math.sqrt(ekf.P[X, X] + ekf.P[Y, Y])
         sigma = filtered if widen is None else widen(filtered)
         if sigma <= max_coast_m:
@@ -220,10 +224,12 @@ class Judge:
         # of its own is), it is the same news
         own = [s for s in RECEIVER if s in self.health.excluded and s not in self.health.with_receiver]
         again = bool(own) and all(self.last_alarm.get(s, (0, False))[1] for s in own)
+        nothing = gnss_only and all(s in self.health.excluded for s in RECEIVER)
+        why = ("tested alone, nothing else holds the estimate" if nothing else
+               f"the estimate +-{sigma:.0f} m without it"
+               f"{', as far as its IMU drifts in this flight' if sigma > filtered else ''}")
         events: list[Event] = [Notice(fix.t_us, "info" if again else "warning", f"GNSS could not be confirmed "
-                                      f"or refuted (the estimate +-{sigma:.0f} m without it"
-                                      f"{', as far as its IMU drifts in this flight' if sigma > filtered else ''}): "
-                                      f"re-anchored on it"
+                                      f"or refuted ({why}): re-anchored on it"
                                       f"{' again' if again else ''}, its alarm stands")]
         for sensor in [s for s in RECEIVER if s in self.health.excluded]:
             events += self.readmit(sensor, fix.t_us, gnss_index, silent=True)

@@ -455,7 +455,7 @@ class Monitor:
                  not self.cfg.filter.use_gnss_velocity) and not self.ground and bool(self.inertial)
         widen = (lambda sigma: self.drift.widened(sigma, coast_s)) if alone else None
         events = self.judge.reanchor(self.ekf, fix, self._fix_en, self.gnss_aid, self.cfg.max_coast_m,
-                                     self.gnss_index, widen, self._held)
+                                     self.gnss_index, widen, self._held, gnss_only=not self.inertial)
         if events:
             self._coast_from = fix.t_us
         return events

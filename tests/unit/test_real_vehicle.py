@@ -181,6 +181,7 @@ def test_an_excluded_gnss_is_re_anchored_when_the_estimate_cannot_hold_and_its_a
     assert (alarm.sensor, alarm.channel) == ("gnss_pos", "north")
     again = [n for n in of(events, Notice) if "re-anchored" in n.text]
     assert len(again) == 1 and again[0].t_us > alarm.t_us, [n.text for n in of(events, Notice)]
+    assert "(the estimate +-" in again[0].text and "tested alone" not in again[0].text, again[0].text
     assert not of(events, Cleared) and "gnss_pos" in mon.alarmed and not mon.excluded
     before = [e for e in of(events, Estimate) if alarm.t_us <= e.t_us < again[0].t_us]
     assert max(abs(e.north_m) for e in before) < 5.0            # while out, the attack did not move it

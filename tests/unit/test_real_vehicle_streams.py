@@ -167,6 +167,8 @@ def test_on_gnss_alone_an_alarm_never_leaves_the_estimate_coasting_away(seed):
     assert alarm.sensor == "gnss_pos" and alarm.t_us >= T0_US + 60_000_000
     said = [n for n in of(events, Notice) if "re-anchored" in n.text]
     assert said and said[0].t_us == alarm.t_us, [(n.t_us, n.text) for n in of(events, Notice)]
+    # on GNSS alone nothing else held it: said so, not as the random walk's thousands of metres
+    assert "(tested alone, nothing else holds the estimate)" in said[0].text and "+-" not in said[0].text, said[0].text
     estimates = of(events, Estimate)
     assert all(e.fix_en is not None for e in estimates)
     far = max(math.hypot(e.east_m - e.fix_en[0], e.north_m - e.fix_en[1]) for e in estimates)
