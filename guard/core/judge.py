@@ -244,12 +244,15 @@ class Judge:
         (latched, no Cleared). What a patient attacker gains: a compass turned and held out that long
         is then taken. While the GNSS course holds the heading (on wheels, or in the air as the vehicle
         turns and speeds up) the heading stays sure and the compass refuted. `sigma`: the heading's
-        uncertainty without it (_heading_sigma)."""
+        uncertainty without it (_heading_sigma); past pi (the gyro excluded as well, the yaw rate a random
+        walk) the line says the heading is unknown rather than a figure of thousands of degrees."""
         if sigma <= math.radians(self.cfg.max_coast_heading_deg):
             return []
         again = self.last_alarm.get(Sensor.MAG, (0, False))[1]
+        # past a half turn a figure means nothing (the gyro set aside too: nothing holds the heading)
+        why = f"heading +-{math.degrees(sigma):.0f} deg" if sigma <= math.pi else "heading unknown"
         return [Notice(t_us, "info" if again else "warning", f"compass could not be confirmed or refuted (the "
-                       f"heading +-{math.degrees(sigma):.0f} deg without it): re-anchored on it"
+                       f"{why} without it): re-anchored on it"
                        f"{' again' if again else ''}, its alarm stands")] + \
             self.readmit(Sensor.MAG, t_us, gnss_index, silent=True)
 

@@ -199,3 +199,17 @@ def test_a_limit_a_gyro_bias_on_a_straight_line_in_the_air_is_not_resolved(seed)
     assert not [n for n in of(events, Notice) if n.text.startswith("compass could not be confirmed")]
     last = of(events, Estimate)[-1]
     assert abs(math.degrees(math.remainder(last.yaw_rad - 0.4, math.tau))) > 90.0
+
+
+def test_a_heading_past_a_half_turn_is_said_unknown_not_given_a_figure():
+    """With the gyro set aside as well as the compass (a real copter's hard landing), the yaw rate is a
+    random walk and the heading's sigma grows past any meaning (+-1012 deg on a real flight): the line
+    says the heading is unknown. Under a half turn the figure is given."""
+    mon, _ = run(drive(10.0, speed=0.0, yaw=0.4, seed=1), AIR)
+    for sigma, said in ((math.radians(25.0), "(the heading +-25 deg without it)"),
+                        (math.radians(179.0), "(the heading +-179 deg without it)"),
+                        (17.7, "(the heading unknown without it)")):
+        mon.health.exclude(Sensor.MAG, T0_US + 5_000_000)
+        notices = of(mon.judge.reanchor_heading(sigma, T0_US + 10_000_000, 0), Notice)
+        assert len(notices) == 1 and said in notices[0].text, notices
+        assert "compass could not be confirmed or refuted" in notices[0].text
