@@ -543,7 +543,7 @@ class Monitor:
         due = self.averager.add(s.t_us, ax, ay, rate, mag, tilt, tilt_rate)
         if due is None:
             return events
-        ax, ay, rate, mag, tilt, tilt_rate, n = due
+        ax, ay, rate, mag, tilt, tilt_rate, n, n_mag = due
         self.ekf.q[BM] = offset_q(self.cfg.filter.q_mag_offset_rad, self.motors.open(s.t_us),
                                   float(self.ekf.P[BM, BM])) ** 2
         self._advance(s.t_us)
@@ -554,7 +554,7 @@ class Monitor:
             self.ekf.set_heading(math.remainder(theta - self.ekf.x[BM], math.tau))
             self._heading_unset = False
         aid, blocks, angle = self.imu_aid.measurement(self.ekf.x, theta, rate, ax, ay, self.ground, tilt,
-                                                      tilt_rate, n)
+                                                      tilt_rate, n, n_mag)
         r, S, PHT = self.ekf.innovation(aid.z, aid.hx, aid.H, aid.R, angle_rows=angle)
         events += self.noise_cap.step(s.t_us, self.imu_aid.noise.measured(n)[:3], self.imu_aid.floors[:3])
         if theta is not None:

@@ -407,3 +407,50 @@ def test_the_fit_check_judges_the_sideways_constraint_apart_from_the_acceleromet
     said = [n.text for n in fit.check(200 * 1_000_000)]
     assert len(said) == 1 and said[0].startswith("accel lateral innovations"), said
     assert 2.5 < fit.factor("accel lateral") <= 3.0 and fit.factor(Sensor.ACCEL) < 1.1   # (each z^2 clipped at 25)
+
+
+def test_a_compass_slower_than_the_imu_has_its_noise_measured_between_its_own_readings():
+    """A 10 Hz compass among 100 Hz IMU samples (as DataFlash and ULog logs give it: a reading on one
+    IMU sample in ten) on a vehicle turning at 0.5 rad/s, 3 degrees of noise per reading: its noise
+    is measured between consecutive readings, less what the gyro turned in between, its median over
+    10 seeds within 10 % of the truth (compared sample to sample it was never measured: its test ran at the
+    floor). A reading not yet measured is taken at NOISE_CAP times the floor. And a 20 degree step
+    written into one reading, after which the test is not calm, is not learnt by the slow memory:
+    the compass's differences are learnt at the next reading, once the test has seen them."""
+    from guard.core.aiding.imu import NOISE_CAP, ImuNoise
+    floors = (0.15, 0.15, 0.01, 0.03)
+    sigma = math.radians(3.0)
+    read = []
+    for seed in range(10):
+        rng = np.random.default_rng(seed)
+        noise = ImuNoise()
+        assert noise.sigmas(floors, 1)[3] == NOISE_CAP * floors[3]
+        for k in range(3000):
+            t = T0_US + 10_000 * k
+            theta = 0.5 * k / 100 + rng.normal(0.0, sigma) if k % 10 == 0 else None
+            noise.add(t, 0.0, 0.0, 0.5 + rng.normal(0.0, 0.01), theta)
+        read.append(math.sqrt(noise.var[3]))
+    shown = [round(math.degrees(r), 2) for r in read]      # its memory holds 20 readings: each within 30 %
+    assert abs(float(np.median(read)) / sigma - 1.0) < 0.1 and all(abs(r / sigma - 1.0) < 0.3 for r in read), shown
+    before = None
+    for k in (3000, 3010, 3020):            # the step's reading (calm before it), then the test not calm
+        noise.add(T0_US + 10_000 * k, 0.0, 0.0, 0.5, 0.5 * k / 100 + (math.radians(20.0) if k == 3000 else 0.0),
+                  calm=k == 3000)
+        before = noise.var[3] if before is None else before
+    assert noise.var[3] == before
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_noisy_compass_at_10_hz_is_quiet_from_its_first_reading_and_a_turn_still_caught(seed):
+    """A 10 Hz compass with 4 degrees of noise per reading among 50 Hz IMU samples (a coarse
+    magnetometer; real ones read 1 to 6 degrees between readings): quiet for 3 minutes, in the air and on
+    wheels, from its first readings (tested at the floor before their noise was measured, it alarmed
+    within half a second), and a 20 degree turn of it at 120 s is caught within a second."""
+    base = drive(180.0, yaw=0.4, seed=seed)
+    _, events = run(_slow_compass(base, 5, 4.0, seed), AIR)
+    assert of(events, Alarm) == []
+    k = next(i for i, s in enumerate(base) if s.t_us >= T0_US + 120_000_000)
+    turned = drive(180.0, yaw=0.4, seed=seed, mag_offset_deg=20.0)
+    _, events = run(_slow_compass(base[:k] + turned[k:], 5, 4.0, seed), GROUND)
+    alarms = of(events, Alarm)
+    assert alarms and alarms[0].sensor == "mag" and 0 <= alarms[0].t_us - (T0_US + 120_000_000) < 1_000_000, alarms[:1]

@@ -10,11 +10,11 @@ is fused at the last one's time, which keeps a 250 Hz IMU affordable on a compan
 
 R is the vehicle's own: the noise of each reading (vibration, on a vehicle with motors: 0.25 to
 0.66 m/s^2 on the accelerometers of two real copters logged at 25 Hz, against the simulator's 0.05)
-is measured from the differences of consecutive samples (`ImuNoise`; the heading's less what the gyro
-turned in between), over NOISE_TAU_S and over the last NOISE_SHORT samples (motors spinning up), and
-used where it exceeds the configured sigma (the floor), up to NOISE_CAP times it. A bias, a ramp or a
-slow drift leaves consecutive samples alike: what an attack of that kind does cannot loosen the test
-that is to find it.
+is measured from the differences of consecutive samples (`ImuNoise`; the heading's between consecutive
+compass readings, less what the gyro turned in between), over NOISE_TAU_S and over the last NOISE_SHORT
+samples (motors spinning up), and used where it exceeds the configured sigma (the floor), up to
+NOISE_CAP times it; until it is measured, at NOISE_CAP times it. A bias, a ramp or a slow drift leaves
+consecutive samples alike: what an attack of that kind does cannot loosen the test that is to find it.
 """
 
 from __future__ import annotations
@@ -107,6 +107,8 @@ NOISE_TAU_S = 2.0       # s, the memory of the measured noise
 NOISE_CAP = 10.0        # the measured noise counts up to this many times its floor
 NOISE_GAP_S = 0.5       # consecutive samples further apart than this are not compared
 NOISE_SHORT = 5         # ... and the median of the last this many second differences, at once
+NOISE_MIN_READINGS = 20    # the compass's slow memory holds at least this many readings (NOISE_TAU_S of a
+                            # 10 Hz one, the rate autopilots log it at)
 
 
 class ImuNoise:
@@ -132,33 +134,60 @@ class ImuNoise:
         self.var = [0.0, 0.0, 0.0, 0.0]
         self.short: list[deque[float]] = [deque(maxlen=NOISE_SHORT) for _ in range(4)]
         self._d: list[float | None] = [None] * 4        # each reading's last first difference
-        self._last: tuple | None = None         # (t_us, ax, ay, rate, heading or None)
+        self._last: tuple | None = None         # (t_us, ax, ay, rate) of the last IMU sample
+        self._mag: tuple[int, float] | None = None      # (t_us, heading) of the last compass reading, and
+        self._turn = 0.0                        # what the gyro turned since it (rad)
+        self._pending: tuple[float, float] | None = None    # the compass's last difference, not yet learnt
 
     def add(self, t_us: int, ax: float, ay: float, rate: float, theta: float | None, learn: bool = True,
             calm: bool = True) -> None:
         """One sample; `learn` False: remembered for the next difference, not learnt from (a blow);
-        `calm` False: learnt by the short memory only (a test is near its threshold)."""
-        last, self._last = self._last, (t_us, ax, ay, rate, theta)
+        `calm` False: learnt by the short memory only (a test is near its threshold).
+
+        The heading's differences are taken between consecutive compass readings, less what the gyro
+        turned in between: a magnetometer slower than the IMU (DataFlash MAG at 10 Hz beside a 50 to
+        400 Hz IMU, a ULog's at 50 to 100 Hz beside 250) speaks on few consecutive IMU samples, and
+        compared sample to sample its noise was never measured: its test ran at the floor,
+        heading_sigma_rad, however noisy the compass."""
+        last, self._last = self._last, (t_us, ax, ay, rate)
         if not learn or last is None or not 0 < t_us - last[0] <= NOISE_GAP_S * 1e6:
             self._d = [None] * 4                # no difference across a gap or a blow (both memories
-            return                              # carry through it: the vehicle is the one it was)
+            self._mag = None if theta is None else (t_us, theta)     # carry through it: the vehicle
+            self._turn, self._pending = 0.0, None                    # is the one it was)
+            return
         dt = (t_us - last[0]) / 1e6
-        a = min(1.0, dt / NOISE_TAU_S)
-        d = [ax - last[1], ay - last[2], rate - last[3],
-             None if theta is None or last[4] is None else math.remainder(theta - last[4] - rate * dt, math.tau)]
-        for i, di in enumerate(d):
-            if di is None:
-                self._d[i] = None
-                continue
-            if calm:
-                self.var[i] += a * (0.5 * di * di - self.var[i])
-            # the short memory takes the second differences, E[(d_k - d_k-1)^2] / 6 = sigma^2 for white
-            # noise: a manoeuvre's signal, locally a line, has none (its first differences would be
-            # taken for noise in a hard-flown copter's turns)
-            if self._d[i] is not None:
-                dd = di - self._d[i]
-                self.short[i].append(dd * dd / 6.0)
-            self._d[i] = di
+        self._turn += rate * dt
+        for i, di in enumerate((ax - last[1], ay - last[2], rate - last[3])):
+            self._learn(i, di, min(1.0, dt / NOISE_TAU_S), calm)
+        if theta is None:
+            return
+        mag, self._mag = self._mag, (t_us, theta)
+        turn, self._turn = self._turn, 0.0
+        # the compass's slow memory learns a difference at the next reading, once the test has seen the
+        # one that made it and stayed calm: a 2 Hz compass has 4 readings in NOISE_TAU_S, and the one a
+        # step is written into would otherwise loosen its own test before it is tested. Nor does one
+        # reading weigh more than 1 / NOISE_MIN_READINGS (a 2 Hz compass's memory: 10 s)
+        pending, self._pending = self._pending, None
+        if pending is not None and calm:
+            self.var[3] += pending[0] * (0.5 * pending[1] ** 2 - self.var[3])
+        if mag is None or not 0 < t_us - mag[0] <= NOISE_GAP_S * 1e6:
+            self._d[3] = None
+            return
+        di = math.remainder(theta - mag[1] - turn, math.tau)
+        self._pending = (min(1.0 / NOISE_MIN_READINGS, (t_us - mag[0]) / 1e6 / NOISE_TAU_S), di)
+        self._learn(3, di, 0.0, False)
+
+    def _learn(self, i: int, di: float, a: float, calm: bool) -> None:
+        """One first difference di of reading i; a the slow memory's step."""
+        if calm:
+            self.var[i] += a * (0.5 * di * di - self.var[i])
+        # the short memory takes the second differences, E[(d_k - d_k-1)^2] / 6 = sigma^2 for white
+        # noise: a manoeuvre's signal, locally a line, has none (its first differences would be
+        # taken for noise in a hard-flown copter's turns)
+        if self._d[i] is not None:
+            dd = di - self._d[i]
+            self.short[i].append(dd * dd / 6.0)
+        self._d[i] = di
 
     def vibration(self) -> float | None:
         """The accelerometers' short noise (m/s^2, the larger axis's), None until both are known: what
@@ -174,19 +203,25 @@ class ImuNoise:
         q = self.short[i]
         return sorted(q)[NOISE_SHORT // 2] if len(q) == NOISE_SHORT else None
 
-    def sigmas(self, floors: tuple[float, float, float, float], n: int) -> list[float]:
-        """The noise of a mean of n samples: each reading's (the larger memory's), within [floor,
-        NOISE_CAP * floor]."""
-        return [min(max(f, r), NOISE_CAP * f) for f, r in zip(floors, self.measured(n))]
+    def sigmas(self, floors: tuple[float, float, float, float], n: int, n_mag: int | None = None) -> list[float]:
+        """The noise of a mean of n samples (of n_mag compass readings, n if None): each reading's (the
+        larger memory's), within [floor, NOISE_CAP * floor]. A reading not yet measured (fewer than
+        NOISE_SHORT second differences: a run's first few samples, a compass's first readings) is
+        taken at NOISE_CAP * floor, the most its test would ever allow: a log that starts in flight, or
+        a coarse compass, was tested at its floor for those first samples and alarmed on them (a
+        second compass reading 15 degrees from the first, 0.1 s into a real flight)."""
+        return [min(max(f, r), NOISE_CAP * f) if len(q) == NOISE_SHORT else NOISE_CAP * f
+                for f, r, q in zip(floors, self.measured(n, n_mag), self.short)]
 
-    def measured(self, n: int) -> list[float]:
-        """The noise of a mean of n samples as measured (the larger memory's), neither floored nor capped."""
+    def measured(self, n: int, n_mag: int | None = None) -> list[float]:
+        """The noise of a mean of n samples (of n_mag compass readings, n if None) as measured (the
+        larger memory's), neither floored nor capped."""
         out = []
         for i, v in enumerate(self.var):
             short = self._short_median(i)
             if short is not None:
                 v = max(v, short)
-            out.append(math.sqrt(v / n))
+            out.append(math.sqrt(v / (n_mag or n if i == 3 else n)))
         return out
 
 
@@ -260,8 +295,8 @@ class Averager:
         self._clear()
 
     def add(self, t_us: int, ax: float, ay: float, rate: float, mag, tilt: float, tilt_rate: float) -> tuple | None:
-        """Add a sample; when a fusion is due, (ax, ay, rate, mag, tilt, tilt rate) averaged and the
-        number of samples in the mean, else None."""
+        """Add a sample; when a fusion is due, (ax, ay, rate, mag, tilt, tilt rate) averaged, the
+        number of samples in the mean and of compass readings in it, else None."""
         acc = self.sum
         acc[0] += ax; acc[1] += ay; acc[2] += rate; acc[6] += tilt_rate
         self.n += 1
@@ -273,7 +308,7 @@ class Averager:
             return None
         n, nm = self.n, self.mag_n
         out = (acc[0] / n, acc[1] / n, acc[2] / n, (acc[3] / nm, acc[4] / nm) if nm else None,
-               acc[5] / nm if nm else 0.0, acc[6] / n, n)
+               acc[5] / nm if nm else 0.0, acc[6] / n, n, nm)
         self._clear()
         self.t_us = t_us
         return out
@@ -290,11 +325,11 @@ class ImuAiding:
         self.H_no_mag = (H_IMU_NO_MAG, H_IMU_NO_MAG_GROUND)
 
     def measurement(self, x: np.ndarray, theta: float | None, rate: float, ax: float, ay: float, ground: bool,
-                    tilt: float = 0.0, tilt_rate: float = 0.0, n: int = 1):
-        """(Aid, blocks, angle_rows) of one fusion of a mean of n samples; theta None without a
-        magnetometer; tilt the heading's sensitivity to a lagging attitude, tilt_rate the roll and
-        pitch rate (level())."""
-        s_ax, s_ay, s_rate, s_theta = self.noise.sigmas(self.floors, n)
+                    tilt: float = 0.0, tilt_rate: float = 0.0, n: int = 1, n_mag: int | None = None):
+        """(Aid, blocks, angle_rows) of one fusion of a mean of n samples (n_mag compass readings in it,
+        n if None); theta None without a magnetometer; tilt the heading's sensitivity to a lagging
+        attitude, tilt_rate the roll and pitch rate (level())."""
+        s_ax, s_ay, s_rate, s_theta = self.noise.sigmas(self.floors, n, n_mag)
         leak = G * tilt_rate * self.f.heading_lag_s     # gravity through an attitude that late
         sig = [s_rate, math.hypot(s_ax, leak), math.hypot(s_ay, leak)]
         if theta is None:
