@@ -145,3 +145,24 @@ def test_the_motors_are_heard_starting_and_stopping_and_a_still_imu_never_starts
         said = _said(_levels(lambda t: 0.5 if t < 30.0 else landed, 60.0, seed))
         assert [w for _, w in said] == ["stop"] and 30.0 + STOP_S <= said[0][0] <= 30.0 + STOP_S + 1.0, (landed, said)
     assert _said(_levels(lambda t: 0.425 + 0.175 * math.sin(t / 3.0), 300.0, seed)) == []
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_an_imu_too_slow_to_integrate_is_not_listened_to_for_the_motors(seed):
+    """Telemetry's RAW_IMU at 2 Hz (the IMU not integrated, the GNSS tested alone), whose vibration comes
+    and goes every 10 s: no motors' start or stop is said (at that rate the second differences are the
+    vehicle's manoeuvres, and the watch said one every few seconds on a real telemetry log, of a
+    compass window no test used). The same vibration at 50 Hz is heard."""
+    vib = lambda t: 1.0 if int(t // 10) % 2 else 0.0     # noqa: E731
+    samples = drive(90.0, yaw=0.4, seed=seed, vibration=vib)
+    slow, k = [], 0
+    for s in samples:
+        if hasattr(s, "acc_x_mps2"):
+            k += 1
+            if k % 25:
+                continue
+        slow.append(s)
+    mon, events = run(slow, AIR)
+    assert mon.inertial is False and not [n for n in of(events, Notice) if "motors" in n.text]
+    _, events = run(samples, AIR)
+    assert [n for n in of(events, Notice) if "the motors started" in n.text]
