@@ -59,6 +59,7 @@ from guard.model.sensors import CHANNELS, RECEIVER, Sensor
 MAX_FIX_INTERVAL_S = 2.0   # s: fixes further apart say nothing of the acceleration between them (a gap)
 KIND_WAIT_S = 10.0     # s of monitoring without the vehicle's type (a HEARTBEAT comes every second): not sent
 SOLE_SAID = {"gnss": "GNSS fixes", "imu": "IMU samples"}
+NO_IMU_S = 10.0      # s of fixes without any IMU sample: the GNSS is tested alone (_imu_absent)
 IMU_SILENT_S = 3.0    # s without an IMU sample while it is integrated: its states carried unmeasured (said)
 CAP_FIXES = 5          # fixes in a row whose receiver calls itself worse than guard takes: then said
 
@@ -339,7 +340,7 @@ class Monitor:
         if self.ekf is None:
             return events + self._initialise(fix)
         events += self._kind_unsaid(fix.t_us)
-        events += self._imu_quiet(fix.t_us)
+        events += self._imu_quiet(fix.t_us) + self._imu_absent(fix.t_us)
         poor = None if self._cap_said else self.gnss_aid.beyond_cap(fix)
         self._cap_run = self._cap_run + 1 if poor else 0
         if poor and self._cap_run >= CAP_FIXES:     # a receiver that says so for a while, not one odd fix
@@ -410,6 +411,22 @@ class Monitor:
         since = f"for {(t_us - last) / 1e6:.1f} s" if last is not None else "since the filter started"
         return [Notice(t_us, "warning", f"no IMU sample {since}: the accelerometer, gyro and compass untested until "
                        "it is back, the GNSS holding the estimate")]
+
+    def _imu_absent(self, t_us: int) -> list[Event]:
+        """A stream with no IMU at all (a ground station's tlog of an autopilot that sends only its
+        ATTITUDE): after NO_IMU_S of fixes without one IMU sample, the GNSS is tested alone, as for an
+        IMU too slow to integrate, the heading held. Run as if an IMU would come, the heading and yaw
+        rate, measured by nothing, wandered as random walks and turned the body velocity through the
+        transport term, and the filter diverged within a minute or two (five times in 46 minutes of a
+        real hexacopter's tlog). An IMU that speaks later is integrated from then on, by a new filter."""
+        if self.inertial is not None or self._started_us is None or t_us - self._started_us < NO_IMU_S * 1e6 \
+                or self.timebase.last.get("imu") is not None:
+            return []
+        self.inertial = False
+        self.ekf.hold_heading()
+        self._heading_unset = False
+        return [Notice(t_us, "warning", f"no IMU sample in {NO_IMU_S:g} s of GNSS: not integrated; GNSS position "
+                       "and velocity are tested against each other alone (jumps, freezes, drifts)")]
 
     def _accel_since_fix(self) -> np.ndarray | None:
         """The mean horizontal acceleration (east, north) since the last fix: the filter's velocity change
@@ -643,6 +660,9 @@ class Monitor:
             return []
         fast, hz, first = judged
         if fast:
+            if first and self.inertial is False and self.ekf is not None:     # after none (_imu_absent)
+                self.inertial = True
+                return self._reinitialise(t_us, f"IMU at {hz:.1f} Hz, after none: integrated", keep_learnt=True)
             if first:
                 self.inertial = True
                 return []

@@ -454,3 +454,32 @@ def test_a_noisy_compass_at_10_hz_is_quiet_from_its_first_reading_and_a_turn_sti
     _, events = run(_slow_compass(base[:k] + turned[k:], 5, 4.0, seed), GROUND)
     alarms = of(events, Alarm)
     assert alarms and alarms[0].sensor == "mag" and 0 <= alarms[0].t_us - (T0_US + 120_000_000) < 1_000_000, alarms[:1]
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_a_stream_without_any_imu_is_tested_on_its_gnss_alone_and_does_not_diverge(seed):
+    """GNSS alone, no IMU sample at all (a ground station's tlog of an autopilot that sends only its
+    ATTITUDE), a fix every 1.6 s at 8 m/s: after NO_IMU_S the GNSS is tested alone, said once, the
+    heading held. Run as if an IMU would come, the filter's unmeasured heading and yaw rate turned its
+    velocity away and it diverged, re-initialised, every minute or so (and on one seed alarmed). A
+    20 m step at 200 s (4.5 sigma of what 1.6 s of a vehicle's own manoeuvres allow) is caught at its
+    fix; an IMU that speaks later is integrated, by a new filter."""
+    from guard.core.monitor import NO_IMU_S
+    samples = drive(300.0, yaw=0.4, seed=seed, speed=8.0,
+                    gnss_offset=lambda t: (0.0, 20.0 if t >= 200.0 else 0.0))
+    fixes = [s for s in samples if isinstance(s, GnssFix)][::8]
+    mon, events = run(fixes, AIR)
+    said = [n for n in of(events, Notice) if n.level == "warning" and n.t_us < T0_US + 200_000_000]
+    assert [n.text.split(":")[0] for n in said] == [f"no IMU sample in {NO_IMU_S:g} s of GNSS"], said
+    assert mon.inertial is False
+    alarm, *_ = of(events, Alarm)
+    assert alarm.sensor in ("gnss_pos", "gnss_vel") and 0 <= alarm.t_us - (T0_US + 200_000_000) <= 1_600_000, alarm
+    quiet = [e for e in of(events, Estimate) if e.t_us < T0_US + 200_000_000]
+    assert max(math.hypot(e.x[0] - 8.0 * math.cos(0.4) * (e.t_us - T0_US) / 1e6,
+                          e.x[1] - 8.0 * math.sin(0.4) * (e.t_us - T0_US) / 1e6) for e in quiet) < 2.0
+    k = len([s for s in samples if s.t_us < T0_US + 60_000_000])     # the IMU speaks from 60 s on
+    late = [s for s in samples[:k] if isinstance(s, GnssFix)][::8] + samples[k:]
+    _, events = run(late, AIR)
+    assert [n for n in of(events, Notice) if n.text.startswith("IMU at") and "after none: integrated" in n.text]
+
+
