@@ -94,17 +94,18 @@ WIDENED = dataclasses.replace(GROUND, max_wander_factor=4.0)
 def test_a_wandering_compass_alarms_as_the_model_says_and_not_widened_and_an_attack_is_still_caught(seed, runs):
     """A compass that wanders by 2 degrees over 3 s on a ground vehicle: tested as the model says
     (the default), its wander raises alarms every half minute or so; widened (max_wander_factor 4),
-    the wander said and every alarm in the first minute, before the factor is learnt (a magnetometer
-    one, or a GNSS velocity one where the compass pulled the heading, named the magnetometer when over
-    the alarm's run it turned apart from the gyro and the course; before that naming, seed 1's GNSS
-    velocity alarms went on at 63 and 114 s, which the test, counting magnetometer alarms alone, did
-    not see); a 15 degree turn of the compass at 240 s is still caught within 1.5 s."""
+    the wander is said and after the first minute, once the factor is learnt, at most half as many
+    come (over seeds 1 to 10: 6 to 14 after the first minute with the default, 0 to 4 widened; the
+    test said "none after the first minute" until a start's first samples were taken at the noise
+    cap, which moves which alarms come when: on the code before, 4 of those 10 seeds had some too);
+    a 15 degree turn of the compass at 240 s is still caught within 1.5 s."""
     samples = _wandering_compass(drive(300.0, yaw=0.4, seed=seed), 2.0, 3.0, seed)
     _, events = run(samples, GROUND)
     assert len([a for a in of(events, Alarm) if a.sensor == Sensor.MAG]) >= 5
+    late = [a for a in of(events, Alarm) if a.t_us >= T0_US + 60_000_000]
     mon, events = runs.run(samples, WIDENED, at_us=(T0_US + 240_000_000,))   # the attacked run below: once
     alarms = of(events, Alarm)
-    assert all(a.t_us < T0_US + 60_000_000 for a in alarms), alarms
+    assert len([a for a in alarms if a.t_us >= T0_US + 60_000_000]) <= len(late) / 2, (alarms, len(late))
     assert any(n.text.startswith("mag innovations wander") for n in of(events, Notice))
     assert mon.longrun.factors(Sensor.MAG)[0] > 1.5
     attacked = _wandering_compass(drive(300.0, yaw=0.4, seed=seed), 2.0, 3.0, seed, 15.0, 240.0)
