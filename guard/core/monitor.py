@@ -425,8 +425,11 @@ class Monitor:
         self.inertial = False
         self.ekf.hold_heading()
         self._heading_unset = False
-        return [Notice(t_us, "warning", f"no IMU sample in {NO_IMU_S:g} s of GNSS: not integrated; GNSS position "
-                       "and velocity are tested against each other alone (jumps, freezes, drifts)")]
+        what = (f"IMU samples heard in {NO_IMU_S:g} s of GNSS, none on its clock (counted as time_off_base: "
+                "see the source's time stamps, time_source on CAN)" if "imu" in self.timebase.heard
+                else f"no IMU sample in {NO_IMU_S:g} s of GNSS")
+        return [Notice(t_us, "warning", f"{what}: not integrated; GNSS position and velocity are tested against "
+                       "each other alone (jumps, freezes, drifts)")]
 
     def _accel_since_fix(self) -> np.ndarray | None:
         """The mean horizontal acceleration (east, north) since the last fix: the filter's velocity change
@@ -545,15 +548,18 @@ class Monitor:
         self._last_mag = mag
         events += self._compass(s.t_us, mag is not None)
         aside = self.inertial and self.ekf is not None and self._blow(s, events)
-        self.imu_aid.noise.add(s.t_us, ax, ay, rate, None if mag is None else heading(*mag, self.declination),
+        # the heading's noise from its differences, without the declination (set at a filter's start: the
+        # readings either side would differ by it)
+        self.imu_aid.noise.add(s.t_us, ax, ay, rate, None if mag is None else heading(*mag, 0.0),
                                learn=not aside, calm=self.judge.calm)
+        # the motors heard only in an IMU fast enough to integrate: at telemetry's 1 to 4 Hz the second
+        # differences are the vehicle's own manoeuvres, and the watch said a start and a stop every
+        # few seconds (43 lines on a real 10-minute flight) of a window no test used
+        if self.imu_rate.fast is not False:
+            events += self.motors.step(s.t_us, self.imu_aid.noise.vibration(), self.ekf)
         if self.inertial is False:
             self.skipped["imu_no_compass" if self.compass.absent else "imu_too_slow"] += 1
             return events
-        # the motors heard only in an IMU that is integrated: at telemetry's 1 to 4 Hz the second
-        # differences are the vehicle's own manoeuvres, and the watch said a start and a stop every
-        # few seconds (43 lines on a real 10-minute flight) of a window no test used
-        events += self.motors.step(s.t_us, self.imu_aid.noise.vibration(), self.ekf)
         if self.ekf is None:
             self.skipped["imu_before_first_fix"] += 1
             return events

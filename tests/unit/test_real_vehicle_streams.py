@@ -2,6 +2,7 @@
 read by its HDOP or still finding itself, IMU streams that change rate, the motors' vibration, a vehicle
 whose type is not said (beside test_real_vehicle.py: the suite's workers take a file each)."""
 
+import copy
 import dataclasses
 import math
 
@@ -413,8 +414,9 @@ def test_a_compass_slower_than_the_imu_has_its_noise_measured_between_its_own_re
     """A 10 Hz compass among 100 Hz IMU samples (as DataFlash and ULog logs give it: a reading on one
     IMU sample in ten) on a vehicle turning at 0.5 rad/s, 3 degrees of noise per reading: its noise
     is measured between consecutive readings, less what the gyro turned in between, its median over
-    10 seeds within 10 % of the truth (compared sample to sample it was never measured: its test ran at the
-    floor). A reading not yet measured is taken at NOISE_CAP times the floor. And a 20 degree step
+    10 seeds within 10 % of the truth (compared sample to sample it was never measured: its test ran at
+    the floor); a 1 Hz compass's too. A reading not yet measured is taken at NOISE_CAP times the floor,
+    for START_CAP_S at most. And a 20 degree step
     written into one reading, after which the test is not calm, is not learnt by the slow memory:
     the compass's differences are learnt at the next reading, once the test has seen them."""
     from guard.core.aiding.imu import NOISE_CAP, ImuNoise
@@ -424,20 +426,27 @@ def test_a_compass_slower_than_the_imu_has_its_noise_measured_between_its_own_re
     for seed in range(10):
         rng = np.random.default_rng(seed)
         noise = ImuNoise()
-        assert noise.sigmas(floors, 1)[3] == NOISE_CAP * floors[3]
         for k in range(3000):
             t = T0_US + 10_000 * k
             theta = 0.5 * k / 100 + rng.normal(0.0, sigma) if k % 10 == 0 else None
             noise.add(t, 0.0, 0.0, 0.5 + rng.normal(0.0, 0.01), theta)
+            if k == 25:                 # three readings: not measured yet
+                assert noise.sigmas(floors, 1)[3] == NOISE_CAP * floors[3]
         read.append(math.sqrt(noise.var[3]))
     shown = [round(math.degrees(r), 2) for r in read]      # its memory holds 20 readings: each within 30 %
     assert abs(float(np.median(read)) / sigma - 1.0) < 0.1 and all(abs(r / sigma - 1.0) < 0.3 for r in read), shown
-    before = None
+    # a 1 Hz compass: its readings a second apart are compared too, and one never measured would not
+    # be held at the cap past START_CAP_S
+    slow = ImuNoise()
+    rng = np.random.default_rng(11)
+    for k in range(12000):
+        slow.add(T0_US + 10_000 * k, 0.0, 0.0, 0.5, 0.5 * k / 100 + rng.normal(0.0, sigma) if k % 100 == 0 else None)
+    assert abs(math.sqrt(slow.var[3]) / sigma - 1.0) < 0.3 and slow.sigmas(floors, 1)[3] < NOISE_CAP * floors[3]
+    twin = copy.deepcopy(noise)             # the same readings without the step
     for k in (3000, 3010, 3020):            # the step's reading (calm before it), then the test not calm
-        noise.add(T0_US + 10_000 * k, 0.0, 0.0, 0.5, 0.5 * k / 100 + (math.radians(20.0) if k == 3000 else 0.0),
-                  calm=k == 3000)
-        before = noise.var[3] if before is None else before
-    assert noise.var[3] == before
+        for n, step in ((noise, math.radians(20.0)), (twin, 0.0)):
+            n.add(T0_US + 10_000 * k, 0.0, 0.0, 0.5, 0.5 * k / 100 + (step if k == 3000 else 0.0), calm=k == 3000)
+    assert noise.var[3] == twin.var[3]
 
 
 @pytest.mark.parametrize("seed", [1, 2])

@@ -109,6 +109,10 @@ NOISE_GAP_S = 0.5       # consecutive samples further apart than this are not co
 NOISE_SHORT = 5         # ... and the median of the last this many second differences, at once
 NOISE_MIN_READINGS = 20    # the compass's slow memory holds at least this many readings (NOISE_TAU_S of a
                             # 10 Hz one, the rate autopilots log it at)
+MAG_GAP_S = 2.5         # consecutive compass readings further apart than this are not compared (a 1 Hz
+                        # one's are, the gyro's turn between them taken out)
+START_CAP_S = 5.0       # a reading not yet measured is taken at the cap for at most this long after its
+                        # first sample, then at what the slow memory holds (below)
 
 
 class ImuNoise:
@@ -138,6 +142,7 @@ class ImuNoise:
         self._mag: tuple[int, float] | None = None      # (t_us, heading) of the last compass reading, and
         self._turn = 0.0                        # what the gyro turned since it (rad)
         self._pending: tuple[float, float] | None = None    # the compass's last difference, not yet learnt
+        self._first: list[int | None] = [None] * 4      # each reading's first sample (the start's cap)
 
     def add(self, t_us: int, ax: float, ay: float, rate: float, theta: float | None, learn: bool = True,
             calm: bool = True) -> None:
@@ -150,6 +155,9 @@ class ImuNoise:
         compared sample to sample its noise was never measured: its test ran at the floor,
         heading_sigma_rad, however noisy the compass."""
         last, self._last = self._last, (t_us, ax, ay, rate)
+        for i in range(3 if theta is None else 4):
+            if self._first[i] is None:
+                self._first[i] = t_us
         if not learn or last is None or not 0 < t_us - last[0] <= NOISE_GAP_S * 1e6:
             self._d = [None] * 4                # no difference across a gap or a blow (both memories
             self._mag = None if theta is None else (t_us, theta)     # carry through it: the vehicle
@@ -165,12 +173,14 @@ class ImuNoise:
         turn, self._turn = self._turn, 0.0
         # the compass's slow memory learns a difference at the next reading, once the test has seen the
         # one that made it and stayed calm: a 2 Hz compass has 4 readings in NOISE_TAU_S, and the one a
-        # step is written into would otherwise loosen its own test before it is tested. Nor does one
-        # reading weigh more than 1 / NOISE_MIN_READINGS (a 2 Hz compass's memory: 10 s)
+        # step is written into would otherwise loosen its own test before it is tested (a compass faster
+        # than the fusions, imu_fusion_hz, may speak again before the test: its readings weigh
+        # NOISE_TAU_S's share, a few thousandths, as before). Nor does one reading weigh more than
+        # 1 / NOISE_MIN_READINGS (a 2 Hz compass's memory: 10 s)
         pending, self._pending = self._pending, None
         if pending is not None and calm:
             self.var[3] += pending[0] * (0.5 * pending[1] ** 2 - self.var[3])
-        if mag is None or not 0 < t_us - mag[0] <= NOISE_GAP_S * 1e6:
+        if mag is None or not 0 < t_us - mag[0] <= MAG_GAP_S * 1e6:
             self._d[3] = None
             return
         di = math.remainder(theta - mag[1] - turn, math.tau)
@@ -207,11 +217,15 @@ class ImuNoise:
         """The noise of a mean of n samples (of n_mag compass readings, n if None): each reading's (the
         larger memory's), within [floor, NOISE_CAP * floor]. A reading not yet measured (fewer than
         NOISE_SHORT second differences: a run's first few samples, a compass's first readings) is
-        taken at NOISE_CAP * floor, the most its test would ever allow: a log that starts in flight, or
-        a coarse compass, was tested at its floor for those first samples and alarmed on them (a
-        second compass reading 15 degrees from the first, 0.1 s into a real flight)."""
-        return [min(max(f, r), NOISE_CAP * f) if len(q) == NOISE_SHORT else NOISE_CAP * f
-                for f, r, q in zip(floors, self.measured(n, n_mag), self.short)]
+        taken at NOISE_CAP * floor, the most its test would ever allow, for at most START_CAP_S after
+        its first sample: a log that starts in flight, or a coarse compass, was tested at its floor for
+        those first samples and alarmed on them (a second compass reading 15 degrees from the first,
+        0.1 s into a real flight). One never measured by then (a compass slower than MAG_GAP_S) is
+        taken at what the slow memory holds, its floor at least, as before."""
+        now = self._last[0] if self._last is not None else None
+        return [min(max(f, r), NOISE_CAP * f) if len(q) == NOISE_SHORT or first is None or now is None
+                or now - first >= START_CAP_S * 1e6 else NOISE_CAP * f
+                for f, r, q, first in zip(floors, self.measured(n, n_mag), self.short, self._first)]
 
     def measured(self, n: int, n_mag: int | None = None) -> list[float]:
         """The noise of a mean of n samples (of n_mag compass readings, n if None) as measured (the
