@@ -167,7 +167,8 @@ class DataFlashWriter:
                     _clamp(m.alt_ellipsoid / 10.0, -2**31, 2**31 - 1), 0, 0)
 
     def _imu(self, t_us: int, m) -> None:
-        self._write(MAG, t_us, 0, m.xmag, m.ymag, m.zmag, 0, 0, 0, 0, 0, 0, 1, t_us & 0xFFFFFFFF)
+        if not getattr(m, "mag_held", False):       # a slower compass: each reading once (Encoder.raw_imu)
+            self._write(MAG, t_us, 0, m.xmag, m.ymag, m.zmag, 0, 0, 0, 0, 0, 0, 1, t_us & 0xFFFFFFFF)
         a, w = G / 1000.0, 1e-3         # mG -> m/s^2, mrad/s -> rad/s, as guard.sources.mavlink
         self._write(IMU, t_us, 0, m.xgyro * w, m.ygyro * w, m.zgyro * w, m.xacc * a, m.yacc * a, m.zacc * a,
                     0, 0, 25.0, 1, 1, 0, 0)

@@ -78,13 +78,20 @@ class Encoder:
         acc = [_i16(a / G * 1000.0) for a in imu.acc_frd]          # mG
         gyro = [_i16(w * 1000.0) for w in imu.gyro_frd]            # mrad/s
         mag = [_i16(m * 1000.0) for m in imu.mag_frd]              # mGauss
-        return self.mav.raw_imu_encode(t_us, *acc, *gyro, *mag, id=0, temperature=2500)
+        msg = self.mav.raw_imu_encode(t_us, *acc, *gyro, *mag, id=0, temperature=2500)
+        # a compass slower than the IMU: RAW_IMU repeats its last reading, as an autopilot's does; the
+        # simulator's other outputs (HIGHRES_IMU's bits, DataFlash's MAG, ULog's, DroneCAN's) carry each
+        # reading once, as theirs do (not part of the MAVLink message: lost once it is packed)
+        msg.mag_held = not imu.mag_fresh
+        return msg
 
     def highres_imu(self, raw):
         """The same reading as PX4's HIGHRES_IMU: m/s^2, rad/s, gauss (RAW_IMU's resolution kept, so that
-        the two carry the same numbers); a magnetometer of zeros (none) is not marked new."""
+        the two carry the same numbers); a magnetometer of zeros (none), or a reading held since the last
+        (Encoder.raw_imu), is not marked new."""
         mag = (raw.xmag / 1000.0, raw.ymag / 1000.0, raw.zmag / 1000.0)
-        fields = HIGHRES_ACC_GYRO_MAG if any(mag) else HIGHRES_ACC_GYRO_MAG & 0b111111
+        fresh = any(mag) and not getattr(raw, "mag_held", False)
+        fields = HIGHRES_ACC_GYRO_MAG if fresh else HIGHRES_ACC_GYRO_MAG & 0b111111
         a = G / 1000.0
         return self.mav.highres_imu_encode(raw.time_usec, raw.xacc * a, raw.yacc * a, raw.zacc * a,
                                            raw.xgyro / 1000.0, raw.ygyro / 1000.0, raw.zgyro / 1000.0, *mag,

@@ -242,5 +242,6 @@ def _to_can(can, t_us: int, msg) -> None:
         g = 9.80665
         can.send_imu(t_us, (msg.xacc * g / 1000, msg.yacc * g / 1000, msg.zacc * g / 1000),
                      (msg.xgyro / 1000, msg.ygyro / 1000, msg.zgyro / 1000))
-        can.send_mag(t_us, (msg.xmag / 1000, msg.ymag / 1000, msg.zmag / 1000))
+        if not getattr(msg, "mag_held", False):     # a slower compass: each reading once (Encoder.raw_imu)
+            can.send_mag(t_us, (msg.xmag / 1000, msg.ymag / 1000, msg.zmag / 1000))
 

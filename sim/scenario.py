@@ -109,6 +109,9 @@ class Noise:
     gnss_vel_acc_reported: bool = True    # false: its vel_acc is 0 ("unknown"); true: gnss_vel_white_mps
     gnss_course_hold_mps: float = 0.0     # below this measured speed the receiver holds its last course over
                                           # ground (real ones do, where the course means nothing: 0.3 to 2 m/s)
+    mag_hz: float = 0.0                   # the compass's own rate: 0 reads it with every IMU sample; slower, each
+                                          # reading is held until the next, and RAW_IMU repeats it meanwhile (as an
+                                          # autopilot's does: real compasses read at 10 to 100 Hz)
 
 
 MAX_WANDER_DEG = 30.0       # the compass's wander (1 sigma): as far as its fixed offset may go

@@ -8,7 +8,9 @@ body frame by the vehicle's heading, plus white noise, and where `mag_wander_deg
 error that comes and goes, first-order Gauss-Markov over `mag_wander_tau_s` (on a multicopter the
 motors' and the wiring's field turn a real compass by degrees over seconds, an error no white noise
 model covers: the shipped scenario `wandering_compass`), and where `mag_iron_x`, `mag_iron_y` are set a
-hard iron, a field fixed to the body that turns the heading by an amount that depends on it.
+hard iron, a field fixed to the body that turns the heading by an amount that depends on it. It reads
+with every IMU sample, or at `mag_hz` where that is set, each reading held until the next (an attack on
+it shows at its next reading).
 
 A vehicle's own sensors (guard_sim.scenario.Noise): the IMU may be mounted yawed (`imu_yaw_mount_deg`) and
 read high or low (`accel_scale`, `gyro_scale`); the compass may be yawed (`mag_offset_deg`). The
@@ -45,6 +47,7 @@ class ImuReading:
     acc_frd: tuple[float, float, float]      # m/s^2, specific force
     gyro_frd: tuple[float, float, float]     # rad/s
     mag_frd: tuple[float, float, float]      # gauss
+    mag_fresh: bool = True                   # False: the compass's last reading, held (Noise.mag_hz)
 
 
 def earth_field_ned_gauss(lat_deg: float, lon_deg: float, alt_m: float, year: float) -> np.ndarray:
@@ -75,6 +78,8 @@ class Sensors:
             if n.mag_wander_deg > 0 else None
         self.wander = self.rng_wander.normal(0.0, math.radians(n.mag_wander_deg)) if self.rng_wander else 0.0
         self.last_imu_t: float | None = None
+        self.mag_held: tuple[float, float, float] | None = None     # the compass's last reading (mag_hz)
+        self.mag_next_t = 0.0                                      # and when it reads again
 
     def _offset(self, t_s: float, sensor: str, channel: str) -> float:
         total = 0.0
@@ -149,14 +154,21 @@ class Sensors:
             self.wander = phi * self.wander + math.sqrt(1 - phi * phi) * self.rng_wander.normal(
                 0.0, math.radians(n.mag_wander_deg))
         self.last_imu_t = t_s
+        for i, axis in enumerate("xyz"):
+            acc[i] += self._offset(t_s, "accel", axis)
+            gyro[i] += self._offset(t_s, "gyro", axis)
+        if n.mag_hz > 0 and self.mag_held is not None and t_s < self.mag_next_t - 1e-9:
+            return ImuReading(tuple(acc), tuple(gyro), self.mag_held, mag_fresh=False)
+        if n.mag_hz > 0:        # readings at k / mag_hz, each taken by the first IMU sample at or after it
+            period = 1.0 / n.mag_hz
+            self.mag_next_t = (math.floor(t_s / period + 1e-9) + 1) * period
         mag = yawed(mag, math.radians(n.mag_offset_deg) + self.wander) + self.rng_mag.normal(0, n.mag_white_gauss, 3)
         if n.mag_iron_x or n.mag_iron_y:        # a field fixed to the body, a fraction of the horizontal one
             mag[:2] += math.hypot(fn, fe) * np.array([n.mag_iron_x, n.mag_iron_y])
         for i, axis in enumerate("xyz"):
-            acc[i] += self._offset(t_s, "accel", axis)
-            gyro[i] += self._offset(t_s, "gyro", axis)
             mag[i] += self._offset(t_s, "mag", axis)
-        return ImuReading(tuple(acc), tuple(gyro), tuple(mag))
+        self.mag_held = tuple(mag)
+        return ImuReading(tuple(acc), tuple(gyro), self.mag_held)
 
 
 def yawed(v: np.ndarray, a_rad: float) -> np.ndarray:

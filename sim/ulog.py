@@ -92,7 +92,8 @@ class UlogWriter:
         self.rows["sensor_combined"].append((t_us, msg.xgyro * w, msg.ygyro * w, msg.zgyro * w, dt, 0,
                                              msg.xacc * a, msg.yacc * a, msg.zacc * a, dt, 0, 0, 0, 0))
         mag = (msg.xmag, msg.ymag, msg.zmag)
-        if mag != (0, 0, 0):        # RAW_IMU's way of saying "no magnetometer"
+        # (0, 0, 0): RAW_IMU's way of saying "no magnetometer"; a held reading is written once (Encoder.raw_imu)
+        if mag != (0, 0, 0) and not getattr(msg, "mag_held", False):
             self.rows["vehicle_magnetometer"].append((t_us, t_us, DEVICE_ID, *(m / 1000.0 for m in mag), 0))
 
     def close(self) -> None:

@@ -11,7 +11,9 @@ y as -f sin a.
 """
 
 import math
+import time
 import tomllib
+import uuid
 
 import numpy as np
 import pymap3d
@@ -21,8 +23,10 @@ from pyulog import ULog
 
 from guard.core.aiding.imu import heading
 from guard.sources import open_log
+from guard.sources.can import CanSource
 from integration.test_sim import read_tlog
 from guard_sim import scenario as scn
+from guard_sim.canbus import CanPublisher
 from guard_sim.run import Simulation, run
 from guard_sim.scenario import SCENARIO_DIR, Noise, ScenarioError
 from guard_sim.sensors import earth_field_ned_gauss
@@ -38,7 +42,8 @@ NOISELESS = {"accel_white_mps2": 0.0, "accel_bias_mps2": 0.0, "gyro_white_radps"
              "mag_white_gauss": 0.0}
 NEW_KEYS = {"mag_offset_deg": 0.0, "mag_wander_deg": 0.0, "mag_wander_tau_s": 3.0, "mag_iron_x": 0.0,
             "mag_iron_y": 0.0, "accel_scale": 0.0, "gyro_scale": 0.0, "imu_yaw_mount_deg": 0.0,
-            "gnss_h_acc_reported": True, "gnss_vel_acc_reported": True, "gnss_course_hold_mps": 0.0}
+            "gnss_h_acc_reported": True, "gnss_vel_acc_reported": True, "gnss_course_hold_mps": 0.0,
+            "mag_hz": 0.0}
 
 
 def scenario_with(**noise) -> scn.Scenario:
@@ -280,6 +285,44 @@ def test_unknown_accuracies_in_dataflash_and_ulog(tmp_path):
         assert len(fixes) == 31 and {(f.h_acc_m, f.vel_acc_mps) for f in fixes} == {(None, None)}, path
 
 
+def test_a_slower_compass_is_held_in_raw_imu_and_written_once_elsewhere(tmp_path):
+    """mag_hz 10 beside a 50 Hz IMU: RAW_IMU repeats each reading until the next (as an autopilot's
+    does), a new one at every 0.1 s; the DataFlash log's MAG, the ULog's vehicle_magnetometer and
+    HIGHRES_IMU's bits carry each reading once; guard reads each as one measurement from all four."""
+    sc = scn.parse({**BASE, "duration_s": 6.0, "noise": {"mag_hz": 10.0}}, "t.toml")
+    paths = {k: str(tmp_path / f"run.{k}") for k in ("tlog", "bin", "ulg")}
+    run(sc, SEED, **paths)
+    raw = [m for m in read_tlog(paths["tlog"]) if m.get_type() == "RAW_IMU"]
+    mag = [(m.xmag, m.ymag, m.zmag) for m in raw]
+    new = [m.time_usec for k, m in enumerate(raw) if k == 0 or mag[k] != mag[k - 1]]
+    assert len(raw) == 301 and new == [100_000 * k for k in range(61)]
+    conn = mavutil.mavlink_connection(paths["bin"])
+    mag_bin = []
+    while (m := conn.recv_match(type="MAG")) is not None:
+        mag_bin.append(m.TimeUS)
+    conn.close()
+    assert mag_bin == new
+    ulg = ULog(paths["ulg"], ["vehicle_magnetometer"]).get_dataset("vehicle_magnetometer").data
+    assert ulg["timestamp"].tolist() == new
+    px4 = tmp_path / "px4.tlog"
+    url = f"can:virtual:held-{uuid.uuid4().hex[:8]}"
+    with CanSource(url, gnss_node_id=None, imu_node_id=None) as source, CanPublisher(url) as publisher:
+        run(sc, SEED, tlog=str(px4), autopilot="px4", can=publisher, fast=True)
+        while True:         # until a poll waits its whole timeout: the bus's queue is empty
+            t0 = time.monotonic()
+            if source.poll(0.2) is None and time.monotonic() - t0 >= 0.2:
+                break
+    assert source.messages["uavcan.equipment.ahrs.MagneticFieldStrength2"] == len(new)
+    marked = [m.time_usec for m in read_tlog(px4) if m.get_type() == "HIGHRES_IMU" and m.fields_updated & (0b111 << 6)]
+    assert marked == new
+    for path in (*paths.values(), str(px4)):
+        with open_log(path) as reader:
+            read = [s.t_us for s in reader.samples() if getattr(s, "mag_x_gauss", None) is not None]
+        # RAW_IMU's repeats are told apart once the compass's period is learnt (its first 20 changes)
+        extra = 0 if path != paths["tlog"] else len(read) - len(new)
+        assert 0 <= extra <= 4 * 21 and set(new) <= set(read), path
+
+
 # -- rates ----------------------------------------------------------------------------------------------
 
 def test_imu_400_hz_gnss_1_hz_over_30_s(tmp_path):
@@ -329,7 +372,7 @@ def test_rates_and_attack_index(imu_hz, gnss_hz):
     ("mag_offset_deg", 30.5), ("mag_offset_deg", -31.0), ("accel_scale", 0.25), ("accel_scale", -0.21),
     ("gyro_scale", 0.3), ("gyro_scale", -1.0), ("imu_yaw_mount_deg", 45.0), ("imu_yaw_mount_deg", -30.01),
     ("mag_wander_deg", -1.0), ("mag_wander_deg", 31.0), ("mag_wander_tau_s", -2.0),
-    ("mag_iron_x", 0.51), ("mag_iron_y", -0.7),
+    ("mag_iron_x", 0.51), ("mag_iron_y", -0.7), ("mag_hz", -10.0),
     ("mag_offset_deg", "5"), ("accel_scale", True), ("gnss_vel_acc_reported", 0), ("gnss_h_acc_reported", "no"),
 ])
 def test_bad_value_is_named(key, value):

@@ -160,6 +160,7 @@ def test_a_vehicle_s_early_step_is_at_its_fifth_fix_and_its_bound_at_its_own_rat
         assert sc.route.max_yaw_jerk_radps3 == car["max_yaw_jerk_radps3"] >= 1.0
         assert sc.route.sensors_ahead_m == car["sensors_ahead_m"] and -0.5 <= car["sensors_ahead_m"] <= 1.5
         assert sc.noise.imu_yaw_mount_deg == car["imu_yaw_mount_deg"]
+        assert sc.noise.mag_hz == car["mag_hz"] and 10.0 <= car["mag_hz"] <= 100.0
         assert sc.attacks[0].start_s == pytest.approx(EARLY_SAMPLE / car["gnss_hz"])
     assert base_scenario(family, duration, attacks).attacks[0].start_s == pytest.approx(EARLY_SAMPLE / 10.0)
     slow, fast = ({"S_pos": 0.3, "vehicle": json.dumps({"gnss_hz": hz})} for hz in (1.0, 2.0))

@@ -86,8 +86,9 @@ def vehicle(seed: int) -> dict:
     scale errors up to 3 % and mounted up to 3 degrees off; on wheels that slip (0 to 0.015 rad per m/s^2
     of lateral acceleration, a car's 0.005 to 0.01 within) and steer as a car does, the yaw acceleration
     moving at 1 to 4 rad/s^3 (sim/vehicle.py), the IMU and antenna 0.5 m behind to 1.5 m ahead of the
-    axle that does not slide; half of them with a receiver that holds its course below 0.3 to 2.5 m/s.
-    Drawn from the seed alone."""
+    axle that does not slide; half of them with a receiver that holds its course below 0.3 to 2.5 m/s; a
+    compass read at 10 to 100 Hz, its reading held in RAW_IMU between (as an autopilot's is). Drawn from
+    the seed alone."""
     rng = random.Random(f"vehicle-{seed}")
     vel = rng.uniform(0.05, 0.3)
     return {"mag_offset_deg": rng.choice((-1, 1)) * rng.uniform(0.0, 5.0), "gnss_vel_white_mps": vel,
@@ -103,7 +104,10 @@ def vehicle(seed: int) -> dict:
             # drawn last: the receiver of half the vehicles holds its course while they are slower than
             # 0.3 to 2.5 m/s (real receivers' low-speed rule; on this route, which runs at 3 to 7 m/s, as
             # they move off from rest, their first course their noise's)
-            "gnss_course_hold_mps": rng.uniform(0.3, 2.5) if rng.random() < 0.5 else 0.0}
+            "gnss_course_hold_mps": rng.uniform(0.3, 2.5) if rng.random() < 0.5 else 0.0,
+            # drawn after all the rest: a compass that reads at 10 to 100 Hz (real ones' rates; at or
+            # above the IMU's, it reads with every IMU sample, as every vehicle's did before)
+            "mag_hz": rng.choice((10.0, 20.0, 50.0, 75.0, 100.0))}
 
 
 def sim_seed(family: str, attacks: tuple, seed: int) -> int:
