@@ -364,18 +364,15 @@ class Monitor:
         events += self._freeze(fix)
         events += self._reanchor(fix)
         delayed = history.delay_s > 0
-        # on GNSS alone the velocity is tested first: nothing but the fixes holds it, and a position that
-        # jumped, fused first, would pull it by metres a second and be reported as the velocity's
-        velocity_first = self.inertial is False and not delayed
-        if velocity_first:
-            events += self._velocity(fix, ekf.x, accel)
         xd = history.delayed(fix.t_us, self.t_us, ekf.x) if delayed else ekf.x     # the state the fix shows
         before = ekf.x.copy() if delayed else None
         events += self._measure(Sensor.GNSS_POS, fix.t_us, self.gnss_aid.position(fix, self._fix_en, xd))
         if delayed:                 # the position's correction, carried to the state the velocity is tested on
             xd = xd + state_minus(ekf.x, before)
-        if not velocity_first:
-            events += self._velocity(fix, xd if delayed else ekf.x, accel)
+        if self.cfg.filter.use_gnss_velocity and fix.vel_n_mps is not None:
+            aid = self.gnss_aid.velocity(fix, xd, accel, bool(self.ground), self._held, ekf.P)
+            self.witnesses.add_course(fix, xd, ekf.P[TH, TH], self.ground, across_track(aid.R, fix), self._held)
+            events += self._measure(Sensor.GNSS_VEL, fix.t_us, aid, modelled=not self._held)
         self._probe(fix)
         if delayed:                 # the correction applies to the stored states too: the next fix sees it
             history.shift(state_minus(ekf.x, before))
@@ -386,15 +383,6 @@ class Monitor:
         else:
             events.append(self._estimate(fix.t_us, self.gnss_index))
         return events
-
-    def _velocity(self, fix: GnssFix, xd: np.ndarray, accel: np.ndarray | None) -> list[Event]:
-        """The fix's velocity, tested and fused on `xd`, the state it shows."""
-        if not (self.cfg.filter.use_gnss_velocity and fix.vel_n_mps is not None):
-            return []
-        ekf = self.ekf
-        aid = self.gnss_aid.velocity(fix, xd, accel, bool(self.ground), self._held, ekf.P)
-        self.witnesses.add_course(fix, xd, ekf.P[TH, TH], self.ground, across_track(aid.R, fix), self._held)
-        return self._measure(Sensor.GNSS_VEL, fix.t_us, aid, modelled=not self._held)
 
     def _imu_quiet(self, t_us: int) -> list[Event]:
         """An integrated IMU silent over IMU_SILENT_S at this fix (its stream stopped, its rate set to
