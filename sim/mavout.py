@@ -9,6 +9,7 @@ receives what the monitor sends back (STATUSTEXT), as an autopilot would.
 
 from __future__ import annotations
 
+import copy
 import math
 import os
 import struct
@@ -129,6 +130,7 @@ class LiveLink:
         self.interval_us = dict(self.default_us)       # message name -> at least this long between two
         self.last_us: dict[str, int] = {}
         self.on_request = on_request
+        self._mag_unsent = False        # a compass reading not yet sent (send)
 
     def _due(self, t_us: int, name: str) -> bool:
         """Whether a message of this name goes out at t_us (a port's rate: the run's samples, thinned)."""
@@ -172,8 +174,17 @@ class LiveLink:
             pass
 
     def send(self, t_us: int, msg) -> None:
+        if msg.get_type() == "RAW_IMU":
+            # a compass reading that came on a sample the port's rate left out is new on the next one sent
+            # (PX4's HIGHRES_IMU marks what was updated since the last message it published)
+            self._mag_unsent = self._mag_unsent or not getattr(msg, "mag_held", False)
         if not self._due(t_us, msg.get_type()):
             return
+        if msg.get_type() == "RAW_IMU":
+            if getattr(msg, "mag_held", False) and self._mag_unsent:
+                msg = copy.copy(msg)
+                msg.mag_held = False
+            self._mag_unsent = False
         try:
             self.conn.write(self.encoder.pack(msg))
         except OSError:

@@ -128,14 +128,19 @@ class CompassRepeats:
     stream (10 Hz in a 50 Hz RAW_IMU) sends each reading several times, and each would be a new
     measurement to the filter and its CUSUM, its error counted as often (an Erle copter's flights
     written as tlogs: 26 magnetometer alarms, against 13 from the same DataFlash logs, whose reader
-    gives each reading once). The compass's own period is learnt from the stream, the median time
-    between changes of its value over its first PERIOD_CHANGES changes; after that, a value equal to
-    the last one taken, less than SAME_READING of that period after it, is the same reading, and the
-    sample goes on without it. A noiseless compass (ArduPilot's SITL) reading the same value a period
-    later is a new reading, and taken; one as fast as the stream never repeats, and nothing changes."""
+    gives each reading once). The compass's own period is learnt from the stream over its first
+    PERIOD_CHANGES changes of value, as the median of their spans over SPAN changes divided by SPAN (a
+    compass a little slower than the stream, 75 Hz in 100 Hz, changes one or two samples apart, and
+    the median of single gaps would be the stream's period); after that, a value equal to the last one
+    taken, less than SAME_READING periods after it, is the same reading, and the sample goes on
+    without it. A held reading is repeated up to a period after it first came (its successor comes at
+    the first sample after its own time); a noisy compass never reads the same value twice, and a
+    noiseless one (ArduPilot's SITL) reading the same value again is taken every other period. One as
+    fast as the stream never repeats, and nothing changes."""
 
     PERIOD_CHANGES = 20
-    SAME_READING = 0.9
+    SPAN = 4
+    SAME_READING = 1.5
 
     def __init__(self):
         self.period_us: float | None = None
@@ -148,10 +153,12 @@ class CompassRepeats:
         value, last = (s.mag_x_gauss, s.mag_y_gauss, s.mag_z_gauss), self._last
         if self.period_us is None:          # learning the period: every sample as it comes
             if last is None or value != last[1]:
-                self._changes.append(s.t_us)
+                c = self._changes
+                c.append(s.t_us)
                 self._last = (s.t_us, value)
-                if len(self._changes) > self.PERIOD_CHANGES:
-                    self.period_us = float(statistics.median(b - a for a, b in zip(self._changes, self._changes[1:])))
+                if len(c) > self.PERIOD_CHANGES:
+                    self.period_us = float(statistics.median(
+                        (c[i + self.SPAN] - c[i]) / self.SPAN for i in range(len(c) - self.SPAN)))
             return s
         if value == last[1] and 0 <= s.t_us - last[0] < self.SAME_READING * self.period_us:
             return dataclasses.replace(s, mag_x_gauss=None, mag_y_gauss=None, mag_z_gauss=None)

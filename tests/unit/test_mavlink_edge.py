@@ -351,7 +351,7 @@ def _imu(t_us, mag):
 def test_a_slower_compasss_reading_sent_again_and_again_counts_once():
     """RAW_IMU at 50 Hz carrying a 10 Hz compass: each reading five times. Once the compass's period is
     learnt, the four repeats go on without it; a reading that changes is taken at once; a noiseless
-    compass reading the same value a period later (ArduPilot's SITL) is a new reading; a compass as
+    compass reading the same value again (ArduPilot's SITL) is taken every other period; a compass as
     fast as the stream loses nothing; a reboot's time going back takes the next reading."""
     from guard.sources.mavlink import CompassRepeats
     rng = np.random.default_rng(0)
@@ -364,11 +364,38 @@ def test_a_slower_compasss_reading_sent_again_and_again_counts_once():
     assert repeats.period_us == 100_000
     after = kept[200:]
     assert sum(after) == len(after) // 5 and all(after[i] for i in range(0, len(after), 5)), after[:12]
-    # the same value a period later: a new reading (a noiseless compass)
-    assert repeats(_imu(500 * 20_000, value)).mag_x_gauss is not None
-    assert repeats(_imu(501 * 20_000, value)).mag_x_gauss is None
-    assert repeats(_imu(505 * 20_000, value)).mag_x_gauss is not None
+    # the same value again (a noiseless compass): within 1.5 periods of the last taken, the same reading
+    # (taken at sample 495: 500 and 502 are 100 and 140 ms after it, 503 160 ms)
+    assert repeats(_imu(500 * 20_000, value)).mag_x_gauss is None
+    assert repeats(_imu(502 * 20_000, value)).mag_x_gauss is None
+    assert repeats(_imu(503 * 20_000, value)).mag_x_gauss is not None
+    assert repeats(_imu(505 * 20_000, value)).mag_x_gauss is None
     assert repeats(_imu(1_000, value)).mag_x_gauss is not None                 # time went back: a reboot
     fast = CompassRepeats()
     got = [fast(_imu(k * 20_000, tuple(float(v) for v in rng.normal(0.2, 0.01, 3)))).mag_x_gauss for k in range(300)]
     assert None not in got and fast.period_us == 20_000
+
+
+@pytest.mark.parametrize("imu_hz, mag_hz", [(50, 10), (50, 20), (50, 40), (25, 20), (100, 75), (200, 75),
+                                            (400, 75), (400, 10), (100, 100), (30, 30)])
+def test_a_compass_slower_than_the_stream_is_read_once_per_reading_whatever_the_two_rates(imu_hz, mag_hz):
+    """Readings at k / mag_hz, each taken by the first RAW_IMU at or after it (times on the stream's
+    microseconds), held until the next: after the period is learnt, guard reads each reading once,
+    even where the compass is a little slower than the stream (75 Hz in 100 Hz: changes one or two
+    samples apart, whose median gap is the stream's period, not the compass's)."""
+    from guard.sources.mavlink import CompassRepeats
+    rng = np.random.default_rng(imu_hz * 1000 + mag_hz)
+    repeats, value, j = CompassRepeats(), None, 0
+    new, kept = [], []
+    for k in range(imu_hz * 20):
+        t_us = round(k * 1e6 / imu_hz)
+        if t_us >= round(j * 1e6 / mag_hz):
+            value = tuple(float(v) for v in rng.normal(0.2, 0.01, 3))
+            new.append(t_us)
+            while round(j * 1e6 / mag_hz) <= t_us:
+                j += 1
+        if repeats(_imu(t_us, value)).mag_x_gauss is not None:
+            kept.append(t_us)
+    assert repeats.period_us == pytest.approx(1e6 / min(mag_hz, imu_hz), rel=0.15)
+    learnt = new[CompassRepeats.PERIOD_CHANGES]
+    assert [t for t in kept if t > learnt] == [t for t in new if t > learnt]
