@@ -79,7 +79,7 @@ class Sensors:
         self.wander = self.rng_wander.normal(0.0, math.radians(n.mag_wander_deg)) if self.rng_wander else 0.0
         self.last_imu_t: float | None = None
         self.mag_held: tuple[float, float, float] | None = None     # the compass's last reading (mag_hz)
-        self.mag_next_t = 0.0                                      # and when it reads again
+        self.mag_next = 0                                          # and the number of its next reading
 
     def _offset(self, t_s: float, sensor: str, channel: str) -> float:
         total = 0.0
@@ -157,11 +157,14 @@ class Sensors:
         for i, axis in enumerate("xyz"):
             acc[i] += self._offset(t_s, "accel", axis)
             gyro[i] += self._offset(t_s, "gyro", axis)
-        if n.mag_hz > 0 and self.mag_held is not None and t_s < self.mag_next_t - 1e-9:
-            return ImuReading(tuple(acc), tuple(gyro), self.mag_held, mag_fresh=False)
-        if n.mag_hz > 0:        # readings at k / mag_hz, each taken by the first IMU sample at or after it
-            period = 1.0 / n.mag_hz
-            self.mag_next_t = (math.floor(t_s / period + 1e-9) + 1) * period
+        if n.mag_hz > 0:
+            # reading j at round(j * 1e6 / mag_hz) us, on the samples' own microsecond clock (a compass as
+            # fast as the IMU reads at every sample), each taken by the first IMU sample at or after it
+            t_us = round(t_s * 1e6)
+            if self.mag_held is not None and t_us < round(self.mag_next * 1e6 / n.mag_hz):
+                return ImuReading(tuple(acc), tuple(gyro), self.mag_held, mag_fresh=False)
+            while round(self.mag_next * 1e6 / n.mag_hz) <= t_us:
+                self.mag_next += 1
         mag = yawed(mag, math.radians(n.mag_offset_deg) + self.wander) + self.rng_mag.normal(0, n.mag_white_gauss, 3)
         if n.mag_iron_x or n.mag_iron_y:        # a field fixed to the body, a fraction of the horizontal one
             mag[:2] += math.hypot(fn, fe) * np.array([n.mag_iron_x, n.mag_iron_y])
