@@ -532,3 +532,29 @@ def test_the_live_link_honours_an_interval_asked_of_it_and_nothing_malformed():
     finally:
         link.close()
         listener.close()
+
+
+def test_a_thinned_px4_link_marks_a_compass_reading_new_on_the_next_message_it_sends():
+    """A 75 Hz compass among 200 Hz IMU samples, the port sending the IMU at 10 Hz: every HIGHRES_IMU
+    that goes out follows a new compass reading, and marks it new (PX4 marks what was updated since the
+    last message it published), over real UDP."""
+    from guard_sim.mavout import LiveLink
+    sc = scn.parse({"name": "t", "duration_s": 3.0, "rates": {"imu_hz": 200.0, "gnss_hz": 5.0},
+                         "noise": {"mag_hz": 75.0}}, "t.toml")
+    listener = mavutil.mavlink_connection("udpin:127.0.0.1:0")
+    port = listener.port.getsockname()[1]
+    sim = Simulation(sc, 1, autopilot="px4")
+    link = LiveLink(f"udpout:127.0.0.1:{port}", sim.encoder, stream_hz=10.0)
+    try:
+        held = 0
+        for t_us, messages in sim.ticks():
+            for msg in messages:
+                held += getattr(msg, "mag_held", False)
+                link.send(t_us, msg)
+        got = []
+        while (m := listener.recv_match(type="HIGHRES_IMU", blocking=True, timeout=0.5)) is not None:
+            got.append(m.fields_updated & (0b111 << 6) == 0b111 << 6)
+    finally:
+        link.close()
+        listener.close()
+    assert held > 100 and len(got) >= 25 and all(got), (held, got)
