@@ -25,6 +25,8 @@ from __future__ import annotations
 import argparse
 import csv
 import hashlib
+import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -34,6 +36,9 @@ from pathlib import Path
 LIST = Path(__file__).resolve().parent / "public_logs.tsv"
 GITHUB = "https://github.com/{repo}.git"
 COLUMNS = ("set", "repo", "commit", "path", "sha256", "name")
+SET = re.compile(r"[A-Za-z0-9_-]+")
+REPO = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*/[A-Za-z0-9_.-]+")
+HEX = re.compile(r"[0-9a-f]+")
 
 
 @dataclass(frozen=True)
@@ -65,10 +70,38 @@ def read_list(path: Path) -> list[Entry]:
             if len(row) != len(COLUMNS):
                 raise ListError(f"{path}:{n}: {len(row)} columns, not {len(COLUMNS)} ({', '.join(COLUMNS)})")
             e = Entry(*(c.strip() for c in row))
-            if len(e.commit) != 40 or len(e.sha256) != 64 or ".." in Path(e.name).parts or Path(e.name).is_absolute():
-                raise ListError(f"{path}:{n}: a 40-digit commit, a 64-digit SHA-256 and a relative name are needed")
+            why = problem(e)
+            if why:
+                raise ListError(f"{path}:{n}: {why}")
             entries.append(e)
+    targets: dict[Path, int] = {}
+    for e in entries:       # one file per target, and none a folder of another
+        t = Path(e.set) / e.name
+        if t in targets or any(p in targets for p in t.parents):
+            raise ListError(f"{path}: {e.set}/{e.name} is named twice, or inside another entry's file")
+        targets[t] = 1
+    for t in targets:
+        if any(p in targets for p in t.parents):
+            raise ListError(f"{path}: {t} is inside another entry's file")
     return entries
+
+
+def problem(e: Entry) -> str | None:
+    """What is wrong with one entry of the list, or None."""
+    parts = Path(e.name).parts
+    if not SET.fullmatch(e.set):
+        return f"set {e.set!r}: letters, digits, - and _ only"
+    if not REPO.fullmatch(e.repo) or ".." in e.repo:
+        return f"repo {e.repo!r}: owner/name"
+    if len(e.commit) != 40 or not HEX.fullmatch(e.commit):
+        return f"commit {e.commit!r}: 40 lower-case hex digits"
+    if len(e.sha256) != 64 or not HEX.fullmatch(e.sha256):
+        return f"sha256 {e.sha256!r}: 64 lower-case hex digits"
+    if not e.path or e.path.startswith("-"):
+        return f"path {e.path!r}: a path in the repository"
+    if not parts or Path(e.name).is_absolute() or any(p in (".", "..") for p in e.name.split("/")):
+        return f"name {e.name!r}: a relative path without . or .."
+    return None
 
 
 def sha256(data: bytes) -> str:
@@ -92,27 +125,54 @@ def fetch(entries: list[Entry], out: Path, url: str, say) -> int:
             args = ["git", "clone", "--quiet", "--no-checkout"]
             if source.startswith(("https://", "http://")):
                 args.append("--filter=blob:none")       # the files asked for only, not every blob of the history
-            p = subprocess.run(args + [source, tmp], capture_output=True, text=True)
+            try:
+                p = subprocess.run(args + ["--", source, tmp], capture_output=True, text=True)
+            except OSError as err:          # no git here
+                say(f"{repo}: git could not be run ({err})")
+                failed += len(todo)
+                continue
             if p.returncode != 0:
                 why = (p.stderr.strip().splitlines() or [f"git exited {p.returncode}"])[-1]
                 say(f"{repo}: could not be cloned from {source}: {why}")
                 failed += len(todo)
                 continue
+            written = 0
             for e in todo:
-                got = subprocess.run(["git", "-C", tmp, "show", f"{e.commit}:{e.path}"], capture_output=True)
+                got = subprocess.run(["git", "-C", tmp, "show", "--end-of-options", f"{e.commit}:{e.path}"],
+                                     capture_output=True)
                 if got.returncode != 0:
-                    say(f"{e.set}/{e.name}: {repo} has no {e.path} at {e.commit[:12]}")
+                    known = subprocess.run(["git", "-C", tmp, "cat-file", "-e", f"{e.commit}^{{commit}}"],
+                                           capture_output=True).returncode == 0
+                    say(f"{e.set}/{e.name}: {repo} has no {e.path} at {e.commit[:12]}" if known
+                        else f"{e.set}/{e.name}: {repo} has no commit {e.commit[:12]}")
                     failed += 1
                 elif sha256(got.stdout) != e.sha256:
                     say(f"{e.set}/{e.name}: {repo}'s {e.path} differs from the list (SHA-256 "
                         f"{sha256(got.stdout)[:12]}, not {e.sha256[:12]}): not written")
                     failed += 1
                 else:
-                    e.target(out).parent.mkdir(parents=True, exist_ok=True)
-                    e.target(out).write_bytes(got.stdout)
-            say(f"{repo}: {len(todo)} file(s) fetched" + (f", {len(files) - len(todo)} already here"
-                                                          if len(files) > len(todo) else ""))
+                    try:
+                        place(e.target(out), got.stdout)
+                        written += 1
+                    except OSError as err:
+                        say(f"{e.set}/{e.name}: could not be written ({err})")
+                        failed += 1
+            say(f"{repo}: {written} of {len(todo)} file(s) fetched" + (f", {len(files) - len(todo)} already here"
+                                                                       if len(files) > len(todo) else ""))
     return failed
+
+
+def place(target: Path, data: bytes) -> None:
+    """The file written whole or not at all: to a temporary file beside it, then moved into place."""
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=".part-")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, target)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
 
 
 def check(entries: list[Entry], out: Path, say) -> int:

@@ -98,3 +98,30 @@ def test_the_shipped_list_names_the_readme_s_sets():
     assert count == {"set47": 47, "held23": 23}
     names = [(e.set, e.name) for e in entries]
     assert len(set(names)) == len(names), "each log named once per set"
+
+
+GOOD = ("set47", "pilot/logs", "a" * 40, "x.BIN", "b" * 64, "pilot/x.BIN")
+
+
+@pytest.mark.parametrize("column, value, said", [
+    (0, "../../escaped", "set"), (0, "/abs", "set"), (1, "../etc", "repo"),
+    (2, "--output=/tmp/injected_by_a_list_x:f.b", "commit"), (2, "A" * 40, "commit"), (4, "c" * 63, "sha256"),
+    (3, "--help", "path"), (5, "../x.BIN", "name"), (5, "/x.BIN", "name"), (5, ".", "name"), (5, "a/./b.BIN", "name"),
+])
+def test_an_entry_that_could_write_outside_the_folder_or_reach_git_as_an_option_is_refused(tmp_path, column, value, said):
+    row = list(GOOD)
+    row[column] = value
+    listing = tmp_path / "list.tsv"
+    listing.write_text("\t".join(row) + "\n")
+    with pytest.raises(tool.ListError, match=f"{listing}:1: {said}"):
+        tool.read_list(listing)
+
+
+def test_two_entries_on_one_file_or_one_inside_another_s_are_refused(tmp_path):
+    listing = tmp_path / "list.tsv"
+    other = list(GOOD)
+    other[5] = "pilot/x.BIN/inner.BIN"
+    for rows in ([GOOD, GOOD], [GOOD, other], [other, GOOD]):
+        listing.write_text("".join("\t".join(r) + "\n" for r in rows))
+        with pytest.raises(tool.ListError, match="named twice|inside another"):
+            tool.read_list(listing)
