@@ -133,14 +133,14 @@ class CompassRepeats:
     compass a little slower than the stream, 75 Hz in 100 Hz, changes one or two samples apart, and
     the median of single gaps would be the stream's period); after that, a value equal to the last one
     taken, less than SAME_READING periods after it, is the same reading, and the sample goes on
-    without it. A held reading is repeated up to a period after it first came (its successor comes at
-    the first sample after its own time); a noisy compass never reads the same value twice, and a
-    noiseless one (ArduPilot's SITL) reading the same value again is taken every other period. One as
+    without it. A held reading is repeated for less than a period after it first came (its successor
+    comes at the first sample after its own time); a noiseless compass (ArduPilot's SITL), or a
+    quantised one as fast as the stream, reading the same value a period later is a new reading. One as
     fast as the stream never repeats, and nothing changes."""
 
     PERIOD_CHANGES = 20
     SPAN = 4
-    SAME_READING = 1.5
+    SAME_READING = 1.0
 
     def __init__(self):
         self.period_us: float | None = None
