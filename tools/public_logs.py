@@ -74,15 +74,10 @@ def read_list(path: Path) -> list[Entry]:
             if why:
                 raise ListError(f"{path}:{n}: {why}")
             entries.append(e)
-    targets: dict[Path, int] = {}
-    for e in entries:       # one file per target, and none a folder of another
-        t = Path(e.set) / e.name
-        if t in targets or any(p in targets for p in t.parents):
-            raise ListError(f"{path}: {e.set}/{e.name} is named twice, or inside another entry's file")
-        targets[t] = 1
-    for t in targets:
-        if any(p in targets for p in t.parents):
-            raise ListError(f"{path}: {t} is inside another entry's file")
+    targets = [Path(e.set) / e.name for e in entries]     # one file per target, and none a folder of another
+    seen = set(targets)
+    if len(seen) < len(targets) or any(p in seen for t in targets for p in t.parents):
+        raise ListError(f"{path}: an entry is named twice, or inside another entry's file")
     return entries
 
 
