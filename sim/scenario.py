@@ -111,7 +111,7 @@ class Noise:
                                           # ground (real ones do, where the course means nothing: 0.3 to 2 m/s)
     mag_hz: float = 0.0                   # the compass's own rate: 0 reads it with every IMU sample; slower, each
                                           # reading is held until the next, and RAW_IMU repeats it meanwhile (as an
-                                          # autopilot's does: real compasses read at 10 to 100 Hz)
+                                          # autopilot's does: real compasses read at 10 to 100 Hz); 1 to 400 Hz
 
 
 MAX_WANDER_DEG = 30.0       # the compass's wander (1 sigma): as far as its fixed offset may go
@@ -248,6 +248,10 @@ def parse(data: dict, where: str) -> Scenario:
                                     f"{SIGNED_NOISE[name]:g}, got {value}")
         elif value < 0:
             raise ScenarioError(f"{where}: noise.{name}: must be >= 0, got {value}")
+    if scenario.noise.mag_hz and not 1 <= scenario.noise.mag_hz <= 400:
+        # a compass slower than 1 Hz holds one reading for seconds: no compass a vehicle steers by
+        raise ScenarioError(f"{where}: noise.mag_hz: must be 0 (with every IMU sample) or within 1..400 Hz, "
+                            f"got {scenario.noise.mag_hz}")
     if scenario.noise.mag_wander_deg > MAX_WANDER_DEG:
         raise ScenarioError(f"{where}: noise.mag_wander_deg: must be within 0..{MAX_WANDER_DEG:g}, "
                             f"got {scenario.noise.mag_wander_deg}")

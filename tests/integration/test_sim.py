@@ -420,6 +420,17 @@ def test_imu_rate_limits_are_inclusive(imu_hz):
     assert scn.parse({**MINIMAL, "rates": {"imu_hz": imu_hz}}, "t.toml").rates.imu_hz == imu_hz
 
 
+@pytest.mark.parametrize("mag_hz", [0.001, 0.5, 400.5])
+def test_compass_rate_out_of_range(mag_hz):
+    with pytest.raises(ScenarioError, match="mag_hz"):
+        scn.parse({**MINIMAL, "noise": {"mag_hz": mag_hz}}, "t.toml")
+
+
+@pytest.mark.parametrize("mag_hz", [0.0, 1, 400.0])
+def test_compass_rate_limits_are_inclusive(mag_hz):
+    assert scn.parse({**MINIMAL, "noise": {"mag_hz": mag_hz}}, "t.toml").noise.mag_hz == mag_hz
+
+
 def test_file_error_names_file_and_key(tmp_path):
     path = tmp_path / "mine.toml"
     path.write_text('name = "mine"\n[rates]\nimu_hz = 50.0\ngps_hz = 5.0\n')
