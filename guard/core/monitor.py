@@ -566,7 +566,10 @@ class Monitor:
         if self.imu_rate.fast is not False:
             events += self.motors.step(s.t_us, self.imu_aid.noise.vibration(), self.ekf)
         if self.inertial is False:
-            self.skipped["imu_no_compass" if self.compass.absent else "imu_too_slow"] += 1
+            # a stream first heard after guard went on GNSS alone without one (_imu_absent) is not slow
+            # before its rate is known (RateWatch): its first samples are counted apart
+            self.skipped["imu_no_compass" if self.compass.absent else
+                         "imu_rate_unknown" if self.imu_rate.fast is None else "imu_too_slow"] += 1
             return events
         if self.ekf is None:
             self.skipped["imu_before_first_fix"] += 1

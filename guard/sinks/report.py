@@ -33,6 +33,8 @@ SKIPPED = {
     "imu_out_of_order": "IMU samples stamped before the last one",
     "imu_before_first_fix": "IMU samples before the first GNSS fix (nothing to integrate them from)",
     "imu_too_slow": "IMU samples of a stream too slow to integrate (GNSS tested alone)",
+    "imu_rate_unknown": "IMU samples of a stream first heard after guard went on GNSS alone without one, before its "
+                        "rate was known (integrated from then on where it is fast enough)",
     "imu_no_compass": "IMU samples of an air vehicle without a compass, not integrated (GNSS tested alone)",
     "imu_impact": "IMU samples within 0.5 s of a blow over 3 g (a landing, a kerb): set aside, the GNSS holding",
     "imu_no_magnetometer": "IMU samples without any magnetometer reading (no heading reference)",
