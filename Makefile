@@ -16,7 +16,7 @@ install: $(BIN)/python
 # opencv, wxPython: hundreds of MB a headless router does not use); its light ones are in [test].
 MAVPROXY := MAVProxy==1.8.75
 
-# The suite on every core, each test file on one worker (its module fixtures run once); 10 to 20
+# The suite on every core, each test file on one worker (its module fixtures run once); 14 to 25
 # minutes on 2 cores (README). `make test PYTEST_ARGS=` runs it serially.
 PYTEST_ARGS ?= -n auto --dist loadfile
 
