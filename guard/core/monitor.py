@@ -129,7 +129,7 @@ class Monitor:
         self._learnt: Learnt | None = None          # what a restarted filter keeps of the vehicle (_reinitialise)
         self._fix: GnssFix | None = None            # the latest fix, and where it is in the local frame
         self._fix_en: tuple[float, float] | None = None
-        self.stamps = FixStamps(self.skipped)       # a fix a receiver epoch off its stamp, brought back to it
+        self.stamps = FixStamps()                   # a fix a receiver epoch off its stamp, brought back to it
         self.drift = Drift()                        # the IMU's open-loop drift, measured in flight (the vehicle's)
         self._held_said = False                     # the receiver holds its course at low speed: said once
         self._usual_said = False                    # a receiver poorer than the fixed bound all along: likewise
@@ -356,8 +356,11 @@ class Monitor:
             return events + self._reinitialise(fix.t_us, f"the filter diverged ({why})") + self._initialise(fix)
         ekf, history = self.ekf, self.history
         self._fix = fix
+        brought_back = self.stamps.brought_back
         self._fix_en = self.stamps.check(fix, self.frame.to_en(fix.lat_deg, fix.lon_deg),
                                          self.gnss_aid.sigma_pos(fix))
+        if self.stamps.brought_back > brought_back:
+            self.skipped["gnss_stamp_slipped"] += 1
         events += self._held_course(fix)
         # the acceleration a late fix lags by, where its latency's uncertainty is set (GnssAiding.latency_spread);
         # on GNSS alone no IMU for a fix to lag

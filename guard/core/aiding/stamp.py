@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import math
 import statistics
-from collections import Counter, deque
+from collections import deque
 
 from guard.model.samples import GnssFix
 
@@ -46,10 +46,10 @@ MAX_DT_S = 2.0          # two fixes further apart than this are not compared
 class FixStamps:
     """Brings a fix back to its stamp where the receiver's own data say it slipped (the module's docstring)."""
 
-    def __init__(self, skipped: Counter[str]):
+    def __init__(self):
         self._last: tuple[int, float, float, float, float, bool] | None = None   # t, e, n, ve, vn, brought back
         self._intervals: deque[float] = deque(maxlen=INTERVALS)
-        self.skipped = skipped                  # the monitor's counts: each fix brought back is one
+        self.brought_back = 0
 
     def restart(self) -> None:
         """A new filter compares its first fix with nothing."""
@@ -82,6 +82,6 @@ class FixStamps:
                         abs(delta) * speed > SLIP_SIGMAS * sigma_m and across <= FIT_SIGMAS * sigma_m):
                     out = (en[0] - fix.vel_e_mps * delta, en[1] - fix.vel_n_mps * delta)
                     slipped = True
-                    self.skipped["gnss_stamp_slipped"] += 1
+                    self.brought_back += 1
         self._last = (fix.t_us, out[0], out[1], fix.vel_e_mps, fix.vel_n_mps, slipped)
         return out
