@@ -38,7 +38,6 @@ from guard.core.aiding.gnss import (HELD_COURSE_MAX_MPS, START_H_ACC_M, START_HD
 from guard.core.aiding.impact import BUDGET_S, HOLD_S, IMPACT_G, MEAN_S, WINDOW_S, Impact
 from guard.core.aiding.imu import NOISE_CAP, Averager, ImuAiding, RateWatch, fuse_rows, heading, level, row_sensors
 from guard.core.aiding.noisecap import NoiseCap
-from guard.core.aiding.stamp import FixStamps
 from guard.core.aiding.motors import MotorWatch, offset_q
 from guard.core.aiding.tilt import Tilt
 from guard.core.anchor import Learnt, diverged, initial_state
@@ -129,7 +128,6 @@ class Monitor:
         self._learnt: Learnt | None = None          # what a restarted filter keeps of the vehicle (_reinitialise)
         self._fix: GnssFix | None = None            # the latest fix, and where it is in the local frame
         self._fix_en: tuple[float, float] | None = None
-        self.stamps = FixStamps()                   # a fix a receiver epoch off its stamp, brought back to it
         self.drift = Drift()                        # the IMU's open-loop drift, measured in flight (the vehicle's)
         self._held_said = False                     # the receiver holds its course at low speed: said once
         self._usual_said = False                    # a receiver poorer than the fixed bound all along: likewise
@@ -160,7 +158,6 @@ class Monitor:
         self.averager = Averager(self.cfg.imu_fusion_hz)
         self.impact = Impact()
         self.drift.restart()
-        self.stamps.restart()
         self._coast_from: int | None = None         # the time of the last GNSS position the estimate holds
         self.detector.reset()
         self._heading_unset = False                 # the filter started before the magnetometer spoke
@@ -355,12 +352,7 @@ class Monitor:
         if why:
             return events + self._reinitialise(fix.t_us, f"the filter diverged ({why})") + self._initialise(fix)
         ekf, history = self.ekf, self.history
-        self._fix = fix
-        brought_back = self.stamps.brought_back
-        self._fix_en = self.stamps.check(fix, self.frame.to_en(fix.lat_deg, fix.lon_deg),
-                                         self.gnss_aid.sigma_pos(fix))
-        if self.stamps.brought_back > brought_back:
-            self.skipped["gnss_stamp_slipped"] += 1
+        self._fix, self._fix_en = fix, self.frame.to_en(fix.lat_deg, fix.lon_deg)
         events += self._held_course(fix)
         # the acceleration a late fix lags by, where its latency's uncertainty is set (GnssAiding.latency_spread);
         # on GNSS alone no IMU for a fix to lag

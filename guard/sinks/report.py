@@ -25,9 +25,6 @@ SKIPPED = {
     "gnss_course_held": "GNSS fixes' velocity directions, held by the receiver (a course repeated to the last "
                         f"digit under {HELD_COURSE_MAX_MPS:g} m/s): taken as unknown, the velocity's variance "
                         "widened by twice its speed",
-    "gnss_stamp_slipped": "GNSS fixes a receiver epoch off their own time stamps (a stream thinned from a faster "
-                          "receiver, each where its own velocity puts it a fraction of a second later or "
-                          "earlier): brought back to its stamp along that velocity",
     "gnss_out_of_order": "GNSS messages stamped before the last one",
     "imu_resent": "IMU samples resent with a time already seen",
     "imu_out_of_order": "IMU samples stamped before the last one",
