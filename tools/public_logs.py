@@ -17,7 +17,9 @@ different is said, and the exit status is 1.
 
 Sets: `set47`, the 47 flights of "Real flights never tuned on"; `held23`, the 23 held out from all
 tuning ("12 more public logs", "A 48th flight", "Held out: 10 more public logs"); `extra`, logs
-named elsewhere in the README (a real GPS spoofer's ULog, tlogs without an IMU).
+named elsewhere in the README (a real GPS spoofer's ULog, tlogs without an IMU); `erle21`, the 21
+Erle flights with a GNSS fix of "Held out: 21 more Erle flights" (erlerobot/logs, besides its 14
+among the 47).
 """
 
 from __future__ import annotations
@@ -189,7 +191,7 @@ def main(argv=None) -> int:
     ap.add_argument("action", choices=("fetch", "check"))
     ap.add_argument("out", help="the folder the logs go in, one folder per set")
     ap.add_argument("--list", default=str(LIST), help="the list of logs (default: tools/public_logs.tsv)")
-    ap.add_argument("--set", action="append", help="only this set (set47, held23, extra); may be repeated")
+    ap.add_argument("--set", action="append", help="only this set (set47, held23, extra, erle21); may be repeated")
     ap.add_argument("--url", default=GITHUB, help="where a repository is cloned from, {repo} its owner/name")
     args = ap.parse_args(argv)
     try:
