@@ -61,7 +61,7 @@ def _replay(args) -> int:
         plot(trace, report, args.plot, truth_beside(args.file))
     if args.report != "-":
         from guard.core.judge import STANDING_GAP_S
-        from guard.sinks.report import SKIPPED, FixGap
+        from guard.sinks.report import ADJUSTED, SKIPPED, FixGap
         alarms = report["alarms"]
         first = (f"first alarm at GNSS sample {alarms[0]['gnss_index']} ({alarms[0]['sensor']} "
                  f"{alarms[0]['channel']})") if alarms else "no alarm"
@@ -87,6 +87,8 @@ def _replay(args) -> int:
             print(f"  {line}")
         for reason, n in sorted(report["skipped"].items(), key=lambda kv: -kv[1]):
             print(f"  skipped {n} {SKIPPED.get(reason, reason.replace('_', ' '))}")
+        for reason, n in sorted(report["adjusted"].items(), key=lambda kv: -kv[1]):
+            print(f"  used {n} {ADJUSTED.get(reason, reason.replace('_', ' '))}")
     return 0
 
 

@@ -113,6 +113,8 @@ class Monitor:
         self._kind_wait_from: int | None = None     # the first fix monitored while neither has
         self._receiver = RECEIVER if f.use_gnss_velocity else (Sensor.GNSS_POS,)
         self.skipped: Counter[str] = Counter()
+        # samples used, but not as they came (their variance widened): counted apart from the skipped
+        self.adjusted: Counter[str] = Counter()
         self.timebase = Timebase(self.cfg.max_gap_s, self.skipped)
         self.fit = ModelFit()
         # each test's scale for its innovations' wander, the vehicle's (kept through a restart); off at 1
@@ -455,7 +457,7 @@ class Monitor:
                       and self.gnss_aid.held_course(fix))
         if not self._held:
             return []
-        self.skipped["gnss_course_held"] += 1
+        self.adjusted["gnss_course_held"] += 1
         if self._held_said:
             return []
         self._held_said = True

@@ -256,7 +256,9 @@ class Daemon:
         skipped = {k: v for k, v in sorted(skipped.items()) if v}
         lost = f", MCAP errors {self.log.errors} ({self.log.lost_messages} messages lost)" if self.log and \
             self.log.errors else ""
-        return f"guard: stopped after {self.samples} samples, {self.alarms} alarm(s); skipped {skipped}{lost}"
+        adjusted = dict(sorted(self.monitor.adjusted.items()))
+        used = f"; used adjusted {adjusted}" if adjusted else ""
+        return f"guard: stopped after {self.samples} samples, {self.alarms} alarm(s); skipped {skipped}{used}{lost}"
 
     def shutdown(self) -> None:
         if self.started:

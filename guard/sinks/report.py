@@ -22,9 +22,6 @@ SKIPPED = {
     "gnss_no_fix": "GNSS messages without a 3D fix (monitoring waits for one, or coasts on the IMU)",
     "gnss_resent": "GNSS messages resent with a time already seen",
     "gnss_coarse_before_start": "GNSS fixes too coarse to start on (the receiver's accuracy over 5 m, or HDOP over 5)",
-    "gnss_course_held": "GNSS fixes' velocity directions, held by the receiver (a course repeated to the last "
-                        f"digit under {HELD_COURSE_MAX_MPS:g} m/s): taken as unknown, the velocity's variance "
-                        "widened by twice its speed",
     "gnss_out_of_order": "GNSS messages stamped before the last one",
     "imu_resent": "IMU samples resent with a time already seen",
     "imu_out_of_order": "IMU samples stamped before the last one",
@@ -56,6 +53,12 @@ SKIPPED = {
     "ulog_bad_time": "ULog samples with an impossible time stamp",
     "ulog_corrupt": "ULog data the reader could not parse",
     "logger_dropouts": "gaps the ULog logger itself recorded (its dropouts)",
+}
+
+# what each reason of the report's `adjusted` means: samples used, not as they came
+ADJUSTED = {
+    "gnss_course_held": "GNSS fixes whose velocity direction the receiver held (a course repeated to the last "
+                        f"digit under {HELD_COURSE_MAX_MPS:g} m/s): used with that direction taken as unknown",
 }
 
 
@@ -124,6 +127,7 @@ class ReportSink(Sink):
             "duration_s": round(duration, 3),
             "messages": dict(sorted(source.messages.items())),
             "skipped": dict(sorted(skipped.items())),
+            "adjusted": dict(sorted(monitor.adjusted.items())),
             "detector": detector_cfg.name,
             "detector_config": json.loads(json.dumps(asdict(detector_cfg))),   # tuples as lists
             "gnss_samples": monitor.gnss_index + 1,

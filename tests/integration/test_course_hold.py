@@ -7,6 +7,7 @@ the same path as `guard replay`.
 """
 
 import dataclasses
+import json
 import math
 
 import numpy as np
@@ -105,9 +106,23 @@ def test_slow_driving_with_a_held_course_raises_no_alarm_and_says_so_once(slow_d
             report = replay(str(log), config)
             assert report["alarms"] == [], f"{log.name}: {report['alarms'][:3]}"
             assert max(report["peak_ratio"].values()) < 0.9, log.name
-            assert report["skipped"]["gnss_course_held"] > 300, log.name
+            assert report["adjusted"]["gnss_course_held"] > 300, log.name
             said = [n for n in report["notices"] if "holds its course" in n["text"]]
             assert len(said) == 1, log.name
+
+
+def test_the_replay_summary_counts_held_fixes_as_used_not_skipped(slow_drives, tmp_path, capsys):
+    """A held fix is used (its direction taken as unknown): the summary says so, and not under "skipped"."""
+    from guard.cli import main
+    tlog, _ = slow_drives(1)
+    out = tmp_path / "report.json"
+    assert main(["replay", str(tlog), "--report", str(out)]) == 0
+    printed = capsys.readouterr().out
+    used = [line for line in printed.splitlines() if "velocity direction the receiver held" in line]
+    assert len(used) == 1 and used[0].strip().startswith("used "), printed
+    assert "skipped" not in used[0]
+    report = json.loads(out.read_text())
+    assert "gnss_course_held" not in report["skipped"] and report["adjusted"]["gnss_course_held"] > 300
 
 
 @pytest.mark.parametrize("vehicle", ["ground", "air"])
@@ -116,7 +131,7 @@ def test_without_the_rule_the_same_drive_alarms(slow_drives, monkeypatch, vehicl
     monkeypatch.setattr(gnss, "HELD_COURSE_MAX_MPS", 0.0)
     tlog, _ = slow_drives(1)
     report = replay(str(tlog), parse({"monitor": {"vehicle": vehicle}}))
-    assert "gnss_course_held" not in report["skipped"]
+    assert "gnss_course_held" not in report["adjusted"]
     assert any(a["sensor"] == "gnss_vel" for a in report["alarms"]), report["alarms"][:3]
 
 
@@ -171,7 +186,7 @@ def test_the_model_fit_and_the_wander_leave_a_held_fix_out(slow_drives):
     reader.close()
     unmodelled = [i for i in tested if not i.modelled]
     assert {i.sensor for i in unmodelled} == {Sensor.GNSS_VEL}
-    assert len(unmodelled) == m.skipped["gnss_course_held"] > 100
+    assert len(unmodelled) == m.adjusted["gnss_course_held"] > 100
     t = m.t_us + 1
     r, S = np.array([0.01, -0.01]), np.eye(2) * 0.01
     m._test(Sensor.GNSS_VEL, t, r, S)                       # a modelled one is taken: a block is being filled
@@ -296,7 +311,7 @@ def test_a_course_held_up_to_three_metres_a_second_through_every_turn_raises_no_
     for log in logs:
         report = replay(log, config)
         assert report["alarms"] == [], report["alarms"][:3]
-        assert report["skipped"]["gnss_course_held"] > 1000
+        assert report["adjusted"]["gnss_course_held"] > 1000
     monkeypatch.setattr(GnssAiding, "held_speed", lambda self, fix, hx, H, P: None)
     assert any(replay(log, config)["alarms"] for log in logs)
 
