@@ -22,7 +22,8 @@ velocity is left as the receiver gave it (a naive spoof). `gyro:W` adds W rad/s 
 (a bias on the yaw rate, as an injection into the IMU would), `accel:A` A m/s^2 to the
 accelerometer's x axis (forward): caught by an alarm on any sensor within WINDOW_S, as the heading
 or velocity it bends shows in the compass's test or the GNSS velocity's, beside the chance of an
-alarm on any sensor in the same window. This is detection
+alarm on any sensor in the same window. Each attack's run replays its log only up to the end of
+its window (what follows cannot change what came within it). This is detection
 measured on real vehicles' noise, which the simulator's figures are not.
 
 A log is .tlog, .bin or .ulg, recognised by its content; a file that is none of them is listed with
@@ -158,16 +159,20 @@ class Span:
         pass
 
 
-def attack(kind: str, size: float, onset_us: int):
+def attack(kind: str, size: float, onset_us: int, until_us: int | None = None):
     """The sample stream with the attack written into it from onset_us on: into its fixes (step, ramp)
     or its IMU (gyro, accel). A log whose IMU is not integrated (telemetry at 1 to 4 Hz) cannot
-    catch an IMU attack: its runs count only the alarms that came by chance."""
+    catch an IMU attack: its runs count only the alarms that came by chance. `until_us`: the stream
+    ends at its first sample stamped after it (the core is causal: what follows the window cannot
+    change whether, or when, the attack was caught within it; a run then costs the log up to there)."""
     def north(fix: GnssFix, dn: float) -> GnssFix:
         lat, lon, _ = pymap3d.enu2geodetic(0.0, dn, 0.0, fix.lat_deg, fix.lon_deg, fix.alt_m)
         return dataclasses.replace(fix, lat_deg=float(lat), lon_deg=float(lon))
 
     def inject(samples):
         for s in samples:
+            if until_us is not None and getattr(s, "t_us", 0) > until_us:
+                return
             if kind in IMU_ATTACKS and isinstance(s, ImuSample) and s.t_us >= onset_us:
                 s = dataclasses.replace(s, gyro_z_radps=s.gyro_z_radps + size) if kind == "gyro" else \
                     dataclasses.replace(s, acc_x_mps2=s.acc_x_mps2 + size)
@@ -265,7 +270,7 @@ def one(job: tuple[str, str | None, tuple[str, ...], tuple[str, ...], bool]) -> 
         runs, imu = [], kind in IMU_ATTACKS
         for at in ONSETS:
             onset = span.fixes[int(at * (len(span.fixes) - 1))]
-            hit = replay(path, cfg, inject=attack(kind, float(size), onset))
+            hit = replay(path, cfg, inject=attack(kind, float(size), onset, onset + int(WINDOW_S[kind] * 1e6)))
             runs.append({"onset_us": onset, "delay_s": caught(hit["alarms"], onset, WINDOW_S[kind], imu),
                          "by_chance_s": caught(r["alarms"], onset, WINDOW_S[kind], imu)})
         out["attacks"][spec] = runs
