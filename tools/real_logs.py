@@ -121,6 +121,7 @@ def config_of(path: str | None, sets: tuple[str, ...]):
 ONSETS = (0.3, 0.5, 0.7)        # at which share of a log's fixes an attack starts, one run each
 # an alarm this long after the onset is the attack caught
 WINDOW_S = {"step": 5.0, "ramp": 30.0, "gyro": 10.0, "accel": 10.0}
+END_MARGIN_S = 2.0   # an attack's run replays its log to this long after its window (attack())
 IMU_ATTACKS = ("gyro", "accel")  # written into the IMU, caught by an alarm on any sensor
 RECEIVER = {"gnss_pos", "gnss_vel"}
 
@@ -163,15 +164,18 @@ def attack(kind: str, size: float, onset_us: int, until_us: int | None = None):
     """The sample stream with the attack written into it from onset_us on: into its fixes (step, ramp)
     or its IMU (gyro, accel). A log whose IMU is not integrated (telemetry at 1 to 4 Hz) cannot
     catch an IMU attack: its runs count only the alarms that came by chance. `until_us`: the stream
-    ends at its first sample stamped after it (the core is causal: what follows the window cannot
-    change whether, or when, the attack was caught within it; a run then costs the log up to there)."""
+    ends at its first sample stamped within a second after until_us + END_MARGIN_S (the core is
+    causal: what follows the window cannot change whether, or when, the attack was caught within
+    it; a run then costs the log up to there). The margin lets a fix sent late, after IMU samples
+    stamped past it (a tlog's receiver latency), still come; a sample stamped further on is a
+    corrupt or far-off one, which the core counts and skips, and does not end the stream."""
     def north(fix: GnssFix, dn: float) -> GnssFix:
         lat, lon, _ = pymap3d.enu2geodetic(0.0, dn, 0.0, fix.lat_deg, fix.lon_deg, fix.alt_m)
         return dataclasses.replace(fix, lat_deg=float(lat), lon_deg=float(lon))
 
     def inject(samples):
         for s in samples:
-            if until_us is not None and getattr(s, "t_us", 0) > until_us:
+            if until_us is not None and 0 < getattr(s, "t_us", 0) - until_us - END_MARGIN_S * 1e6 <= 1e6:
                 return
             if kind in IMU_ATTACKS and isinstance(s, ImuSample) and s.t_us >= onset_us:
                 s = dataclasses.replace(s, gyro_z_radps=s.gyro_z_radps + size) if kind == "gyro" else \
