@@ -22,8 +22,8 @@ velocity is left as the receiver gave it (a naive spoof). `gyro:W` adds W rad/s 
 (a bias on the yaw rate, as an injection into the IMU would), `accel:A` A m/s^2 to the
 accelerometer's x axis (forward): caught by an alarm on any sensor within WINDOW_S, as the heading
 or velocity it bends shows in the compass's test or the GNSS velocity's, beside the chance of an
-alarm on any sensor in the same window. Each attack's run replays its log only up to the end of
-its window (what follows cannot change what came within it). This is detection
+alarm on any sensor in the same window. Each attack's run replays its log only to END_MARGIN_S
+after its window (what follows cannot change what came within it). This is detection
 measured on real vehicles' noise, which the simulator's figures are not.
 
 A log is .tlog, .bin or .ulg, recognised by its content; a file that is none of them is listed with
