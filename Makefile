@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 
-.PHONY: demo test install install-test clean
+.PHONY: demo test test-long install install-test clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -16,9 +16,10 @@ install: $(BIN)/python
 # opencv, wxPython: hundreds of MB a headless router does not use); its light ones are in [test].
 MAVPROXY := MAVProxy==1.8.75
 
-# The suite on every core, each test file on one worker (its module fixtures run once); 14 to 25
-# minutes on 2 cores (README). `make test PYTEST_ARGS=` runs it serially.
-PYTEST_ARGS ?= -n auto --dist loadfile
+# The suite on every core, each test file on one worker (its module fixtures run once), without
+# the tests marked long (a claim's further seeds, the longest drives: tests/conftest.py), which
+# `make test-long` runs. `make test PYTEST_ARGS=` runs both tiers, serially.
+PYTEST_ARGS ?= -n auto --dist loadfile -m "not long"
 
 install-test: $(BIN)/python
 	$(BIN)/python -m pip install --quiet -e '.[test]'
@@ -29,6 +30,9 @@ demo: install
 
 test: install-test
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
+
+test-long: install-test
+	$(BIN)/python -m pytest -n auto --dist loadfile -m long
 
 clean:
 	rm -rf $(VENV) build *.egg-info

@@ -1,12 +1,14 @@
 """The steady suite: the whole test suite, N times in a row on a fresh clone, stopping at the first failure.
 
-    python tools/steady.py --runs 20                 # 20 full runs of HEAD (about 16 minutes each on 2 cores)
+    python tools/steady.py --runs 20                 # 20 runs of make test's tier of HEAD
+    python tools/steady.py --runs 1 --all            # both tiers: make test's and make test-long's
     python tools/steady.py --runs 5 -- tests/unit    # pytest arguments after -- (instead of make test's)
 
 A flaky test blocks landings at random; this finds one before CI does. The clone is of the commit
 checked out (uncommitted changes are not in it), installed once with the README's test command
 (`make install-test`), then `python -m pytest` is run N times with the arguments `make test` gives it
-(the Makefile's PYTEST_ARGS: every core, a test file per worker) unless others follow `--`. The
+(the Makefile's PYTEST_ARGS: every core, a test file per worker, the tests marked long left out;
+with --all, without that choice: both tiers) unless others follow `--`. The
 shared data folder beside the checkout, where there is one, is linked beside the clone, so that the
 tests of the real logs run rather than skip. Each run's
 outcome and time is printed as it ends, and the summary names the failing run's first failures;
@@ -33,10 +35,24 @@ def make_test_args(clone: Path) -> list[str]:
     return shlex.split(m.group(1)) if m else []
 
 
+def without_marks(pytest_args: list[str]) -> list[str]:
+    """The arguments without their `-m EXPR` (the choice of a tier): both tiers."""
+    out, skip = [], False
+    for a in pytest_args:
+        if skip:
+            skip = False
+        elif a == "-m":
+            skip = True
+        elif not a.startswith("-m"):
+            out.append(a)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--runs", type=int, default=20, help="how many runs in a row (default: 20)")
     p.add_argument("--keep", action="store_true", help="keep the clone (its path is printed)")
+    p.add_argument("--all", action="store_true", help="both tiers: the tests marked long too")
     p.add_argument("pytest_args", nargs="*", help="arguments for pytest, after --")
     args = p.parse_args(argv)
     work = Path(tempfile.mkdtemp(prefix="guard-steady-"))
@@ -51,6 +67,8 @@ def main(argv: list[str] | None = None) -> int:
     subprocess.run(["make", "install-test"], cwd=clone, check=True)
     python = clone / ".venv" / "bin" / "python"
     pytest_args = args.pytest_args or make_test_args(clone)
+    if args.all and not args.pytest_args:
+        pytest_args = without_marks(pytest_args)
     print(f"steady: python -m pytest {shlex.join(pytest_args)}", flush=True)
     times = []
     for i in range(1, args.runs + 1):

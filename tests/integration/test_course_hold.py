@@ -148,6 +148,8 @@ def test_a_step_on_a_slow_drive_with_a_held_course_is_still_caught(tmp_path, see
     assert after[0]["gnss_index"] - k0 <= 10                    # 10 Hz: within 1 s
 
 
+# long: tune's side of a held course; make test keeps the monitor's (above)
+@pytest.mark.long
 def test_tune_leaves_a_held_course_out(tmp_path, monkeypatch):
     """A held course's innovation is the course's error, the same fix after fix, not the receiver's
     noise: `guard tune` leaves it out (Innovation.modelled). The same drive as its receiver would send

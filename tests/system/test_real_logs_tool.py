@@ -48,6 +48,9 @@ def test_a_bad_key_or_folder_is_named_and_nothing_runs(tmp_path):
     assert got.returncode == 2 and "no log in it or its folders" in got.stderr and "Traceback" not in got.stderr
 
 
+# long: the campaign tool's attacks on real logs; make test keeps their stream's unit tests
+# (tests/unit/test_real_logs_attack.py) and the tool's clean run (above)
+@pytest.mark.long
 def test_an_attack_written_into_real_fixes_is_caught_and_measured(shared, tmp_path):
     """--attack: each log run again with a 10 m step written into its own fixes at 30, 50 and 70 % of
     them, with a 0.05 rad/s bias written into its yaw gyro and with a 0.5 m/s^2 one into its forward

@@ -47,6 +47,8 @@ def first_after(path: str, k0: int, cfg) -> dict | None:
     return alarms[0] if alarms else None
 
 
+# long: a further fit of tune's; make test keeps the wander past what tune fits named (below)
+@pytest.mark.long
 def test_the_position_s_wander_is_a_random_walk_and_a_step_is_still_caught(drives, monkeypatch):
     # the simulator's receiver has no latency: the search for one is test_tune.py's
     monkeypatch.setattr(tune_module, "DELAYS", (0.0,))

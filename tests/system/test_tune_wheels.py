@@ -14,6 +14,8 @@ from guard_sim.run import run
 SLIP = 0.01
 
 
+# long: tune on wheels; make test keeps the place learnt online (tests/integration/test_detection.py)
+@pytest.mark.long
 def test_on_wheels_the_sensors_place_is_learnt_and_the_constraint_fitted_apart(tmp_path):
     """Sensors 1 m ahead of the axle: tune writes where they sit (`sensors_ahead_m`). Told they sit on
     it (d held at 0), the sideways constraint, tested with the accelerometer, reads their swing: tune
