@@ -180,7 +180,6 @@ class NavEKF:
         self.c = 1.0 if cfg.centripetal else 0.0
         self._F = np.eye(N_STATES)
         self._I = np.eye(N_STATES)
-        self._diag = np.diag_indices(N_STATES)
         # False: b_psi, k_s and d are held as they are, "consider" states (their rows of K zeroed): while a test is near
         # its threshold, what the filter learns of the vehicle could be an attack's doing (Monitor)
         self.learning = True
@@ -198,7 +197,7 @@ class NavEKF:
 
     def _step(self, T: float) -> None:
         x, c, F = self.x, self.c, self._F
-        th, vx, vy, w, ax, ay = x[TH:BW].tolist()
+        px, py, th, vx, vy, w, ax, ay = x[:BW].tolist()
         cs, sn = math.cos(th), math.sin(th)
         # F = df/dx, evaluated at the prior state
         F[X, TH], F[X, VX], F[X, VY] = T * (-vx * sn - vy * cs), T * cs, -T * sn
@@ -206,18 +205,18 @@ class NavEKF:
         F[TH, W] = T
         F[VX, VY], F[VX, W], F[VX, AX] = T * c * w, T * c * vy, T
         F[VY, VX], F[VY, W], F[VY, AY] = -T * c * w, -T * c * vx, T
-        # x = f(x)
-        x[X] += T * (vx * cs - vy * sn)
-        x[Y] += T * (vx * sn + vy * cs)
-        x[TH] = math.remainder(th + T * w, math.tau)
-        x[VX] += T * (ax + c * w * vy)
-        x[VY] += T * (ay - c * w * vx)
-        # P = F P Fᵀ + Q,  Q = q T
-        self.P = F @ self.P @ F.T
-        self.P[self._diag] += self.q * T
+        # x = f(x): x, y, theta, v_x, v_y written at once (python floats, the same operations)
+        x[:W] = (px + T * (vx * cs - vy * sn),
+                 py + T * (vx * sn + vy * cs),
+                 math.remainder(th + T * w, math.tau),
+                 vx + T * (ax + c * w * vy),
+                 vy + T * (ay - c * w * vx))
+        # P = F P Fᵀ + Q,  Q = q T (P.flat[::N_STATES + 1]: P's diagonal)
+        P = self.P = F @ self.P @ F.T
+        P.flat[::N_STATES + 1] += self.q * T
         if self.cfg.mag_offset_per_turn_rad and self.q[BM] > 0.0:      # off by default: one test
             # P[b_psi, b_psi] += sigma_turn^2 |theta_dot| T: b_psi moves with the heading turned
-            self.P[BM, BM] += self.cfg.mag_offset_per_turn_rad ** 2 * abs(w) * T
+            P[BM, BM] += self.cfg.mag_offset_per_turn_rad ** 2 * abs(w) * T
 
     def set_heading(self, theta: float) -> None:
         """Start the heading over at theta (the magnetometer's first reading), the ground velocity kept:

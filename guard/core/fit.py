@@ -36,13 +36,15 @@ class ModelFit:
     def add(self, sensor: Sensor, t_us: int, r: np.ndarray, S: np.ndarray) -> None:
         """One fused innovation (python floats: this runs at every fusion)."""
         own, lateral = lateral_rows(sensor, len(r))
-        self._add(sensor, t_us, r[own], S[own, own])
+        r, var = r.tolist(), S.diagonal().tolist()
+        self._add(sensor, t_us, r[own], var[own])
         if lateral is not None:
-            self._add(LATERAL, t_us, r[lateral], S[lateral, lateral])
+            self._add(LATERAL, t_us, r[lateral], var[lateral])
 
-    def _add(self, sensor: str, t_us: int, r: np.ndarray, S: np.ndarray) -> None:
+    def _add(self, sensor: str, t_us: int, r: list[float], var: list[float]) -> None:
+        """r and its variances S_ii, of one sensor's rows."""
         z2 = 0.0
-        for ri, si in zip(r.tolist(), S.diagonal().tolist()):
+        for ri, si in zip(r, var):
             z2 += min(ri * ri / si, CLIP * CLIP)
         a = self.acc.get(sensor)
         if a is None:

@@ -56,7 +56,7 @@ class Judge:
         """Run the detector on one sensor's innovation; decide whether to fuse it (`modelled`:
         Innovation's)."""
         stat, thr, hits = self.detector.test(sensor, t_us, r, self.longrun.scale(sensor, S) if self.longrun else S)
-        self.ratios[sensor] = max((g / h for g, h in zip(stat, thr) if 0.0 < h < math.inf), default=0.0)
+        self.ratios[sensor] = max([g / h for g, h in zip(stat, thr) if 0.0 < h < math.inf], default=0.0)
         if sensor == Sensor.GNSS_VEL:
             self.witnesses.last_vel = (r, S)    # the axis to name if a magnetometer alarm turns out to be it
             self.vel_t = t_us
@@ -73,6 +73,8 @@ class Judge:
     def _alarms(self, sensor, t_us, hits, stat, thr, ekf, now_us, gnss_index) -> list[Event]:
         """The alarms of a sensor in use: named (isolation), raised, and what it excludes."""
         events: list[Event] = []
+        if not hits:                            # the usual case: nothing to name
+            return events
         health, bw, run = self.health, ekf.x[BW], self._run(sensor)
         for i, offset in hits:
             lateral = sensor == Sensor.ACCEL and CHANNELS[sensor][i] == "lateral"

@@ -575,8 +575,8 @@ class Monitor:
         if due is None:
             return events
         ax, ay, rate, mag, tilt, tilt_rate, n, n_mag = due
-        self.ekf.q[BM] = offset_q(self.cfg.filter.q_mag_offset_rad, self.motors.open(s.t_us),
-                                  float(self.ekf.P[BM, BM])) ** 2
+        motors_open = self.motors.open(s.t_us)     # as it stands after this sample's motors.step
+        self.ekf.q[BM] = offset_q(self.cfg.filter.q_mag_offset_rad, motors_open, float(self.ekf.P[BM, BM])) ** 2
         self._advance(s.t_us)
         theta = None if mag is None else heading(*mag, self.declination)
         if theta is None and not self.compass.heard:   # a compass slower than the IMU is not one missing
@@ -587,7 +587,7 @@ class Monitor:
         aid, blocks, angle = self.imu_aid.measurement(self.ekf.x, theta, rate, ax, ay, self.ground, tilt,
                                                       tilt_rate, n, n_mag)
         r, S, PHT = self.ekf.innovation(aid.z, aid.hx, aid.H, aid.R, angle_rows=angle)
-        events += self.noise_cap.step(s.t_us, self.imu_aid.noise.measured(n)[:3], self.imu_aid.floors[:3])
+        events += self.noise_cap.step(s.t_us, self.imu_aid.measured[:3], self.imu_aid.floors[:3])
         if theta is not None:
             self.witnesses.add_heading(HeadingWitness(s.t_us, theta, rate))
         if self.ground:
@@ -602,7 +602,7 @@ class Monitor:
                                                                             # accelerometer's
             # the compass's in a motors' window: its S holds the offset's fast walk, not the compass's noise
             ev, fused = self._test(sensor, s.t_us, r[i:last], S[i:last, i:last],
-                                   modelled=sensor != Sensor.MAG or not self.motors.open(s.t_us))
+                                   modelled=sensor != Sensor.MAG or not motors_open)
             events += ev
             if fused:
                 keep.extend(range(i, j))

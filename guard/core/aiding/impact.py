@@ -88,7 +88,13 @@ class Impact:
         if not self._covered:
             return 0.0
         n = len(recent)
-        return math.sqrt(sum((sum(r[i] for r in recent) / n) ** 2 for i in (1, 2, 3)))
+        # the sums taken in the samples' order, as sum() takes them
+        sx = sy = sz = 0.0
+        for _, fx, fy, fz in recent:
+            sx += fx
+            sy += fy
+            sz += fz
+        return math.sqrt((sx / n) ** 2 + (sy / n) ** 2 + (sz / n) ** 2)
 
     def _forget(self, t_us: int) -> None:
         """Drop what was set aside more than WINDOW_S ago (a time that jumped back: all of it)."""

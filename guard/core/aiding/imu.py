@@ -137,6 +137,7 @@ class ImuNoise:
     def __init__(self):
         self.var = [0.0, 0.0, 0.0, 0.0]
         self.short: list[deque[float]] = [deque(maxlen=NOISE_SHORT) for _ in range(4)]
+        self._median: list[float | None] = [None] * 4  # each short memory's median once full, kept as it moves
         self._d: list[float | None] = [None] * 4        # each reading's last first difference
         self._last: tuple | None = None         # (t_us, ax, ay, rate) of the last IMU sample
         self._mag: tuple[int, float] | None = None      # (t_us, heading) of the last compass reading, and
@@ -165,8 +166,10 @@ class ImuNoise:
             return
         dt = (t_us - last[0]) / 1e6
         self._turn += rate * dt
-        for i, di in enumerate((ax - last[1], ay - last[2], rate - last[3])):
-            self._learn(i, di, min(1.0, dt / NOISE_TAU_S), calm)
+        a = min(1.0, dt / NOISE_TAU_S)
+        self._learn(0, ax - last[1], a, calm)
+        self._learn(1, ay - last[2], a, calm)
+        self._learn(2, rate - last[3], a, calm)
         if theta is None:
             return
         mag, self._mag = self._mag, (t_us, theta)
@@ -194,9 +197,13 @@ class ImuNoise:
         # the short memory takes the second differences, E[(d_k - d_k-1)^2] / 6 = sigma^2 for white
         # noise: a manoeuvre's signal, locally a line, has none (its first differences would be
         # taken for noise in a hard-flown copter's turns)
-        if self._d[i] is not None:
-            dd = di - self._d[i]
-            self.short[i].append(dd * dd / 6.0)
+        d_last = self._d[i]
+        if d_last is not None:
+            dd = di - d_last
+            q = self.short[i]
+            q.append(dd * dd / 6.0)
+            if len(q) == NOISE_SHORT:
+                self._median[i] = sorted(q)[NOISE_SHORT // 2]
         self._d[i] = di
 
     def vibration(self) -> float | None:
@@ -209,30 +216,33 @@ class ImuNoise:
 
     def _short_median(self, i: int) -> float | None:
         """The short memory's variance of one channel (the median of its last NOISE_SHORT), None
-        until it holds that many."""
-        q = self.short[i]
-        return sorted(q)[NOISE_SHORT // 2] if len(q) == NOISE_SHORT else None
+        until it holds that many (_learn keeps it as the memory moves: it is read several times a sample)."""
+        return self._median[i]
 
     def sigmas(self, floors: tuple[float, float, float, float], n: int, n_mag: int | None = None) -> list[float]:
-        """The noise of a mean of n samples (of n_mag compass readings, n if None): each reading's (the
-        larger memory's), within [floor, NOISE_CAP * floor]. A reading not yet measured (fewer than
-        NOISE_SHORT second differences: a run's first few samples, a compass's first readings) is
-        taken at NOISE_CAP * floor, the most its test would ever allow, for at most START_CAP_S after
+        """The noise of a mean of n samples (of n_mag compass readings, n if None): `floored` of
+        `measured`."""
+        return self.floored(floors, self.measured(n, n_mag))
+
+    def floored(self, floors: tuple[float, float, float, float], measured: list[float]) -> list[float]:
+        """The noise `measured` of a mean of samples (measured()): each reading's (the larger memory's),
+        within [floor, NOISE_CAP * floor]. A reading not yet measured (fewer than NOISE_SHORT second
+        differences: a run's first few samples, a compass's first readings) is taken at
+        NOISE_CAP * floor, the most its test would ever allow, for at most START_CAP_S after
         its first sample: a log that starts in flight, or a coarse compass, was tested at its floor for
         those first samples and alarmed on them (a second compass reading 15 degrees from the first,
         0.1 s into a real flight). One never measured by then (a compass slower than MAG_GAP_S) is
         taken at what the slow memory holds, its floor at least, as before."""
         now = self._last[0] if self._last is not None else None
-        return [min(max(f, r), NOISE_CAP * f) if len(q) == NOISE_SHORT or first is None or now is None
+        return [min(max(f, r), NOISE_CAP * f) if short is not None or first is None or now is None
                 or now - first >= START_CAP_S * 1e6 else NOISE_CAP * f
-                for f, r, q, first in zip(floors, self.measured(n, n_mag), self.short, self._first)]
+                for f, r, short, first in zip(floors, measured, self._median, self._first)]
 
     def measured(self, n: int, n_mag: int | None = None) -> list[float]:
         """The noise of a mean of n samples (of n_mag compass readings, n if None) as measured (the
         larger memory's), neither floored nor capped."""
         out = []
-        for i, v in enumerate(self.var):
-            short = self._short_median(i)
+        for i, (v, short) in enumerate(zip(self.var, self._median)):
             if short is not None:
                 v = max(v, short)
             out.append(math.sqrt(v / (n_mag or n if i == 3 else n)))
@@ -337,13 +347,15 @@ class ImuAiding:
         self.noise = ImuNoise()
         self.H = (H_IMU, H_IMU_GROUND)          # indexed by `ground`: for a ground vehicle, v_y = 0 after it
         self.H_no_mag = (H_IMU_NO_MAG, H_IMU_NO_MAG_GROUND)
+        self.measured: list[float] = []         # the last fusion's noise as measured (ImuNoise.measured)
 
     def measurement(self, x: np.ndarray, theta: float | None, rate: float, ax: float, ay: float, ground: bool,
                     tilt: float = 0.0, tilt_rate: float = 0.0, n: int = 1, n_mag: int | None = None):
         """(Aid, blocks, angle_rows) of one fusion of a mean of n samples (n_mag compass readings in it,
         n if None); theta None without a magnetometer; tilt the heading's sensitivity to a lagging
         attitude, tilt_rate the roll and pitch rate (level())."""
-        s_ax, s_ay, s_rate, s_theta = self.noise.sigmas(self.floors, n, n_mag)
+        self.measured = self.noise.measured(n, n_mag)
+        s_ax, s_ay, s_rate, s_theta = self.noise.floored(self.floors, self.measured)
         leak = G * tilt_rate * self.f.heading_lag_s     # gravity through an attitude that late
         sig = [s_rate, math.hypot(s_ax, leak), math.hypot(s_ay, leak)]
         if theta is None:

@@ -82,7 +82,8 @@ class PageCusum(Detector):
 
     def test(self, sensor: str, t_us: int, r: np.ndarray, S: np.ndarray):
         chans = self.state.get(sensor)
-        nk = len(self.ks)
+        ks = self.ks
+        nk = len(ks)
         if chans is None or len(chans) != len(r):      # new, or its channels changed (a vehicle found on wheels)
             chans = self.state[sensor] = [_Page(nk) for _ in range(len(r))]
         hs = self._h(sensor, t_us)
@@ -91,23 +92,31 @@ class PageCusum(Detector):
         onset = 0                                       # the longest run of this sample's alarms
         for i, (ri, si) in enumerate(zip(r.tolist(), S.diagonal().tolist())):
             c = chans[i]
-            z = min(max(ri / math.sqrt(si), -clip), clip)
+            gps, gns, sum_p, sum_n, cnt_p, cnt_n = c.gp, c.gn, c.sum_p, c.sum_n, c.cnt_p, c.cnt_n
+            # z = r / sqrt(S_ii), within [-clip, clip]
+            z = ri / math.sqrt(si)
+            if z > clip:
+                z = clip
+            elif z < -clip:
+                z = -clip
             best, best_j, best_g = -1.0, 0, 0.0
-            for j, k in enumerate(self.ks):
+            for j in range(nk):
+                k = ks[j]
                 # g+ = max(0, g+ + z - k),  g- = max(0, g- - z - k)
-                gp = c.gp[j] + z - k
+                gp = gps[j] + z - k
                 if gp > 0.0:
-                    c.gp[j] = gp; c.sum_p[j] += ri; c.cnt_p[j] += 1
+                    gps[j] = gp; sum_p[j] += ri; cnt_p[j] += 1
                 else:
-                    gp = c.gp[j] = c.sum_p[j] = 0.0; c.cnt_p[j] = 0
-                gn = c.gn[j] - z - k
+                    gp = gps[j] = sum_p[j] = 0.0; cnt_p[j] = 0
+                gn = gns[j] - z - k
                 if gn > 0.0:
-                    c.gn[j] = gn; c.sum_n[j] += ri; c.cnt_n[j] += 1
+                    gns[j] = gn; sum_n[j] += ri; cnt_n[j] += 1
                 else:
-                    gn = c.gn[j] = c.sum_n[j] = 0.0; c.cnt_n[j] = 0
+                    gn = gns[j] = sum_n[j] = 0.0; cnt_n[j] = 0
                 g = gp if gp > gn else gn
-                if g / hs[j] > best:
-                    best, best_j, best_g = g / hs[j], j, g
+                ratio = g / hs[j]
+                if ratio > best:
+                    best, best_j, best_g = ratio, j, g
             j = best_j
             if best > self.peak.get(sensor, 0.0):
                 self.peak[sensor] = best
@@ -116,9 +125,9 @@ class PageCusum(Detector):
             stat.append(best_g)
             thr.append(hs[j])
             if best > 1.0:
-                up = c.gp[j] >= c.gn[j]
-                n = c.cnt_p[j] if up else c.cnt_n[j]
-                alarms.append((i, (c.sum_p[j] if up else c.sum_n[j]) / n))
+                up = gps[j] >= gns[j]
+                n = cnt_p[j] if up else cnt_n[j]
+                alarms.append((i, (sum_p[j] if up else sum_n[j]) / n))
                 onset = self.run_length[sensor] = max(onset, n)
                 chans[i] = _Page(nk)      # the test restarts after an alarm
         return tuple(stat), tuple(thr), alarms
