@@ -17,6 +17,7 @@ import time
 from collections import deque
 from dataclasses import asdict
 
+import numpy as np
 import pymap3d
 
 from .mavout import Encoder, LiveLink, TlogWriter
@@ -86,6 +87,8 @@ class Simulation:
         self.vehicle = Vehicle(scenario.route, scenario.start.heading_deg)
         self.trajectory = {"t_usec": [], "lat_deg": [], "lon_deg": [], "east_m": [], "north_m": [], "yaw_rad": [],
                            "speed_mps": []}
+        self._true_en: list[tuple[float, float]] = []     # the truth's east, north at each fix: to latitude and
+                                                          # longitude in one call when the truth is written
         # a receiver with latency reports the vehicle as it was gnss_delay_s ago: the states since then
         delay = scenario.noise.gnss_delay_s
         self.past = deque([(0.0, copy.copy(self.vehicle.s))]) if delay > 0 and scenario.rates.gnss_hz > 0 else None
@@ -142,8 +145,8 @@ class Simulation:
         g = self.sensors.gnss(t_us / 1e6, seen)
         self.last_gnss = (g.east_m, g.north_m)
         lat, lon, alt = pymap3d.enu2geodetic(g.east_m, g.north_m, 0.0, st.lat_deg, st.lon_deg, st.alt_m)
-        tlat, tlon, _ = pymap3d.enu2geodetic(s.e, s.n, 0.0, st.lat_deg, st.lon_deg, st.alt_m)
-        for key, value in zip(self.trajectory, (t_us, tlat, tlon, s.e, s.n, s.psi, s.v)):
+        self._true_en.append((s.e, s.n))
+        for key, value in (("t_usec", t_us), ("east_m", s.e), ("north_m", s.n), ("yaw_rad", s.psi), ("speed_mps", s.v)):
             self.trajectory[key].append(round(value, 9) if isinstance(value, float) else value)
         lost = any(a.kind == "dropout" and a.active(t_us / 1e6) for a in sc.attacks)
         # the accuracies the receiver reports (None: it reports none); never 0, which means "unknown"
@@ -153,6 +156,12 @@ class Simulation:
                                         g.vel_e_mps, h_acc, vel_acc, fix_type=1 if lost else 3)
 
     def truth(self) -> dict:
+        st = self.scenario.start
+        if len(self.trajectory["lat_deg"]) < len(self._true_en):     # the fixes since the last call
+            e, n = np.array(self._true_en[len(self.trajectory["lat_deg"]):]).reshape(-1, 2).T
+            lat, lon, _ = pymap3d.enu2geodetic(e, n, 0.0, st.lat_deg, st.lon_deg, st.alt_m)
+            self.trajectory["lat_deg"] += [round(v, 9) for v in lat.tolist()]
+            self.trajectory["lon_deg"] += [round(v, 9) for v in lon.tolist()]
         return truth_record(self.scenario, self.seed, self.sensors, self.trajectory)
 
 
