@@ -1,4 +1,4 @@
-"""The steady suite: `make test`'s tests (with --all, both tiers), N times in a row on a fresh clone, stopping at the first failure.
+"""The steady suite: `make test`'s tests (--all: both tiers) N times in a row on a fresh clone, to the first failure.
 
     python tools/steady.py --runs 20                 # 20 runs of make test's tier of HEAD
     python tools/steady.py --runs 1 --all            # both tiers: make test's and make test-long's
