@@ -128,7 +128,8 @@ class FilterConfig:
     q_accel_mps2: float = 2.0         # jerk
     q_accel_no_imu_mps2: float = 5.0  # jerk when no IMU measures the acceleration (GNSS alone): a vehicle's own
                                       # manoeuvres between fixes (a copter tilting 10 degrees in a third of a
-                                      # second: 5 m/s^3; at 3, real copters' 1 Hz telemetry alarmed every few minutes)
+                                      # second: 5 m/s^3; at 3, real copters' 1 Hz telemetry alarmed every few minutes),
+                                      # widened at each fix by what a fast IMU saw (`manoeuvred`)
     q_gyro_bias_radps: float = 1e-4
     q_accel_bias_mps2: float = 1e-3
     q_accel_bias_air_mps2: float = 0.01   # a vehicle that tilts: its levelled accelerometers carry the attitude's
@@ -246,6 +247,17 @@ class NavEKF:
         self.P[VY, VY] += dv_var
         for i in (AX, AY):
             self.P[i, i] = max(self.P[i, i], self.cfg.p0_accel_mps2 ** 2)
+
+    def manoeuvred(self, da: float, T: float) -> None:
+        """On GNSS alone, the IMU says the acceleration changed by da (m/s^2) over the T s since the last
+        fix, in a direction nothing measures (guard.core.aiding.manoeuvre): each axis's acceleration
+        variance grows by da^2 and its velocity's by (da T)^2, as if the change had come at the interval's
+        start (the velocity this fix shows has taken it)."""
+        dv = da * T
+        self.P[AX, AX] += da * da
+        self.P[AY, AY] += da * da
+        self.P[VX, VX] += dv * dv
+        self.P[VY, VY] += dv * dv
 
     def wander(self, q_pos: float) -> None:
         """The position's random walk (m/sqrt(s)): the receiver's correlated error the estimate follows."""

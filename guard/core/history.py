@@ -44,6 +44,15 @@ class Blow(NamedTuple):
     dv_var: float
 
 
+class Manoeuvre(NamedTuple):
+    """On GNSS alone, the acceleration's change the IMU saw (guard.core.aiding.manoeuvre), which a
+    rewind adds again."""
+
+    t_us: int
+    da: float
+    T: float
+
+
 def keep_since(history: deque, t_us: float, at: int = 0) -> None:
     """Drop the entries of a history of tuples whose time (item `at`) is older than t_us."""
     while history and history[0][at] < t_us:
@@ -62,7 +71,7 @@ class History:
         self.rewind_s = rewind_s
         self.delay_s = delay_s
         self.epochs: deque[Epoch] = deque()
-        self.imu_log: deque[ImuFusion | Blow] = deque()
+        self.imu_log: deque[ImuFusion | Blow | Manoeuvre] = deque()
         self.states: deque = deque(maxlen=int((delay_s + 1.0) * fuse_hz) + 2)   # [t_us, x] pairs
 
     def __len__(self) -> int:
@@ -86,6 +95,11 @@ class History:
         """A blow's added velocity variance, kept while an epoch may need it."""
         if self.epochs:
             self.imu_log.append(Blow(t_us, dv_var))
+
+    def manoeuvre(self, t_us: int, da: float, T: float) -> None:
+        """The acceleration's change the IMU saw on GNSS alone, kept while an epoch may need it."""
+        if self.epochs:
+            self.imu_log.append(Manoeuvre(t_us, da, T))
 
     def oldest_x(self) -> np.ndarray | None:
         return self.epochs[0].x if self.epochs else None
@@ -151,6 +165,9 @@ class History:
             t = entry.t_us
             if isinstance(entry, Blow):
                 ekf.blow(entry.dv_var)
+                continue
+            if isinstance(entry, Manoeuvre):
+                ekf.manoeuvred(entry.da, entry.T)
                 continue
             _, z, H, R, angle, sensors = entry
             if leave_out and any(s in leave_out for s in sensors):

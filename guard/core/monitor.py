@@ -13,8 +13,9 @@ the orchestration; each part owns its data and never calls back:
 Per IMU sample: level the IMU with the autopilot's roll and pitch (a flying drone is tilted), set it
 aside within 0.5 s of a blow over 3 g (aiding/impact: a landing's point sample is no acceleration to
 integrate), average a fast IMU down to `imu_fusion_hz`, predict the filter to the sample's time, form the innovations
-of heading, gyro and accelerometer, test them, fuse them. Per GNSS sample: the same with position
-and velocity, then an Estimate. A GNSS alarm rewinds the filter to before the attack at the next
+of heading, gyro and accelerometer, test them, fuse them; on GNSS alone (the IMU not integrated)
+only note how much its acceleration changed (aiding/manoeuvre), which widens the model at the next
+fix. Per GNSS sample: the same with position and velocity, then an Estimate. A GNSS alarm rewinds the filter to before the attack at the next
 sample, once the alarm is out; the alarm epoch's Estimate waits for it and comes out with that
 sample's events. A ground vehicle (`vehicle`, from the autopilot's HEARTBEAT by default) also has
 v_y = 0 fused with every IMU update, its innovation tested as the accelerometer's "lateral" channel
@@ -36,6 +37,7 @@ from guard.core.aiding.compass import NO_COMPASS_S, CompassWatch
 from guard.core.aiding.gnss import (HELD_COURSE_MAX_MPS, START_H_ACC_M, START_HDOP, FreezeWatch, GnssAiding,
                                     across_track, gnss_velocity_model)
 from guard.core.aiding.impact import BUDGET_S, HOLD_S, IMPACT_G, MEAN_S, WINDOW_S, Impact
+from guard.core.aiding.manoeuvre import AccelChange
 from guard.core.aiding.imu import NOISE_CAP, Averager, ImuAiding, RateWatch, fuse_rows, heading, level, row_sensors
 from guard.core.aiding.noisecap import NoiseCap
 from guard.core.aiding.motors import MotorWatch, offset_q
@@ -121,6 +123,7 @@ class Monitor:
         self.longrun = LongRun(self.cfg.max_wander_factor) if self.cfg.max_wander_factor > 1.0 else None
         self.gnss_index = -1
         self.tilt = Tilt()                          # the autopilot's roll and pitch, at each IMU sample's time
+        self.manoeuvre = AccelChange()              # on GNSS alone, how much the IMU says the acceleration changed
         self.inertial: bool | None = None           # None until the IMU's rate is known; False: too slow
         self.imu_rate = RateWatch(self.cfg.min_imu_hz)
         self.compass = CompassWatch()               # whether an air vehicle has a compass at all
@@ -160,6 +163,7 @@ class Monitor:
         self.averager = Averager(self.cfg.imu_fusion_hz)
         self.impact = Impact()
         self.drift.restart()
+        self.manoeuvre.reset()
         self._coast_from: int | None = None         # the time of the last GNSS position the estimate holds
         self.detector.reset()
         self._heading_unset = False                 # the filter started before the magnetometer spoke
@@ -349,7 +353,14 @@ class Monitor:
             self._cap_said = True
             events.append(Notice(fix.t_us, "warning", poor))
         self.ekf.wander(self.gnss_aid.q_pos(fix))
+        T = (fix.t_us - self.t_us) / 1e6
         self._advance(fix.t_us)
+        if self.inertial is False:
+            sx, sy = self.imu_aid.noise.measured(1)[:2]
+            da = self.manoeuvre.change(fix.t_us, sx * sx + sy * sy)
+            if da > 0.0 and T > 0.0:
+                self.ekf.manoeuvred(da, T)
+                self.history.manoeuvre(fix.t_us, da, T)
         why = diverged(self.ekf)
         if why:
             return events + self._reinitialise(fix.t_us, f"the filter diverged ({why})") + self._initialise(fix)
@@ -560,6 +571,8 @@ class Monitor:
         if self.imu_rate.fast is not False:
             events += self.motors.step(s.t_us, self.imu_aid.noise.vibration(), self.ekf)
         if self.inertial is False:
+            if self.imu_rate.fast:                  # a slow stream's samples are points, not means
+                self.manoeuvre.add(s.t_us, ax, ay, rate)
             # a stream first heard after guard went on GNSS alone without one (_imu_absent) is not slow
             # before its rate is known (RateWatch): its first samples are counted apart
             self.skipped["imu_no_compass" if self.compass.absent else
