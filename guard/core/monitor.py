@@ -361,6 +361,8 @@ class Monitor:
             if da > 0.0 and T > 0.0:
                 self.ekf.manoeuvred(da, T)
                 self.history.manoeuvre(fix.t_us, da, T)
+                if da > self.cfg.filter.q_accel_no_imu_mps2 * math.sqrt(T):    # past the model's own walk
+                    self.adjusted["gnss_manoeuvre_widened"] += 1
         why = diverged(self.ekf)
         if why:
             return events + self._reinitialise(fix.t_us, f"the filter diverged ({why})") + self._initialise(fix)

@@ -59,6 +59,9 @@ SKIPPED = {
 ADJUSTED = {
     "gnss_course_held": "GNSS fixes whose velocity direction the receiver held (a course repeated to the last "
                         f"digit under {HELD_COURSE_MAX_MPS:g} m/s): used with that direction taken as unknown",
+    "gnss_manoeuvre_widened": "GNSS fixes on GNSS alone after a manoeuvre the IMU saw (its acceleration changed by "
+                              "more than the model's random walk allows between fixes): tested against a model "
+                              "widened by that change",
 }
 
 

@@ -110,6 +110,10 @@ def test_wing_overs_the_imu_saw_are_no_gnss_alarm(seed, monkeypatch):
     mon, events = run(weave(60.0, seed), AIR)
     assert mon.inertial is False and not of(events, Alarm)
     assert gnss_peaks(events)["gnss_vel"] < 0.5
+    # the fixes tested against the widened model are counted (most of the 40 s of weaving's 200)
+    assert 100 < mon.adjusted["gnss_manoeuvre_widened"] <= 200
+    straight, _ = run(weave(60.0, seed, rate=0.0), AIR)
+    assert straight.adjusted["gnss_manoeuvre_widened"] == 0
     monkeypatch.setattr(AccelChange, "change", lambda self, t_us, noise_var: 0.0)
     _, unheard = run(weave(60.0, seed), AIR)
     assert len([a for a in of(unheard, Alarm) if a.sensor.value == "gnss_vel"]) >= 10
