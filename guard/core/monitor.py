@@ -13,9 +13,9 @@ the orchestration; each part owns its data and never calls back:
 Per IMU sample: level the IMU with the autopilot's roll and pitch (a flying drone is tilted), set it
 aside within 0.5 s of a blow over 3 g (aiding/impact: a landing's point sample is no acceleration to
 integrate), average a fast IMU down to `imu_fusion_hz`, predict the filter to the sample's time, form the innovations
-of heading, gyro and accelerometer, test them, fuse them; on GNSS alone (the IMU not integrated)
-only note how much its acceleration changed (aiding/manoeuvre), which widens the model at the next
-fix. Per GNSS sample: the same with position and velocity, then an Estimate. A GNSS alarm rewinds the filter to before the attack at the next
+of heading, gyro and accelerometer, test them, fuse them; on GNSS alone (no compass), a fast IMU's
+samples only say how much the acceleration changed (aiding/manoeuvre), which widens the model at
+the next fix. Per GNSS sample: the same with position and velocity, then an Estimate. A GNSS alarm rewinds the filter to before the attack at the next
 sample, once the alarm is out; the alarm epoch's Estimate waits for it and comes out with that
 sample's events. A ground vehicle (`vehicle`, from the autopilot's HEARTBEAT by default) also has
 v_y = 0 fused with every IMU update, its innovation tested as the accelerometer's "lateral" channel
@@ -37,8 +37,8 @@ from guard.core.aiding.compass import NO_COMPASS_S, CompassWatch
 from guard.core.aiding.gnss import (HELD_COURSE_MAX_MPS, START_H_ACC_M, START_HDOP, FreezeWatch, GnssAiding,
                                     across_track, gnss_velocity_model)
 from guard.core.aiding.impact import BUDGET_S, HOLD_S, IMPACT_G, MEAN_S, WINDOW_S, Impact
-from guard.core.aiding.manoeuvre import AccelChange
 from guard.core.aiding.imu import NOISE_CAP, Averager, ImuAiding, RateWatch, fuse_rows, heading, level, row_sensors
+from guard.core.aiding.manoeuvre import AccelChange
 from guard.core.aiding.noisecap import NoiseCap
 from guard.core.aiding.motors import MotorWatch, offset_q
 from guard.core.aiding.tilt import Tilt

@@ -1,14 +1,15 @@
 """On GNSS alone, how much the IMU says the acceleration changed between fixes.
 
-An IMU that is not integrated (an air vehicle without a compass; a stream too slow for inertial
-checks) cannot say where the vehicle's acceleration points: its heading is unknown. It can still say
-how much the acceleration changed. The levelled accelerometers read the horizontal specific force,
+An IMU that is not integrated for want of a heading (an air vehicle without a compass) cannot say
+where the vehicle's acceleration points. It can still say how much the acceleration changed. The levelled accelerometers read the horizontal specific force,
 which is the horizontal acceleration, in the body's own yawed frame; the levelled gyro's yaw rate
 turns that frame. Kept in one frame that turns with the gyro (its start arbitrary), the mean of the
 readings over each fix interval is the vehicle's mean acceleration there, up to one unknown rotation,
 and the length of the difference between two intervals' means does not depend on it:
 
-    da(k) = | mean_k R(psi) f  -  mean_(k-1) R(psi) f |,    psi = integral of the yaw rate
+    da(k)^2 = | mean_k R(psi) f  -  mean_(k-1) R(psi) f |^2 - (sx^2 + sy^2) (1/n_k + 1/n_(k-1)),
+    psi = the integral of the yaw rate, sx and sy the accelerometers' measured noise (ImuNoise), n
+    the samples of each interval; 0 where that is negative
 
 The filter on GNSS alone models the acceleration as a random walk (`q_accel_no_imu_mps2`), the
 vehicle's own manoeuvres between fixes; da(k)^2 is added to the variance of each of its axes at fix k
@@ -16,20 +17,21 @@ vehicle's own manoeuvres between fixes; da(k)^2 is added to the variance of each
 measures. A manoeuvre the IMU saw, a plane rolling from one bank to the other (on two real ArduPlane
 flights: 20 m/s^2 of turn reversed within a second, 10 m/s^2 a fix interval, where the random walk
 allows 2) no longer reads as a GNSS velocity that jumped. A GNSS attack cannot move the IMU: where the
-vehicle flies steadily da is its accelerometers' noise over the interval (sigma sqrt(2/n) for n
-samples) and the tests are as tight as before. What it gives up: a GNSS velocity spoof written into a
-hard manoeuvre is tested against the looser model for that interval. A specific force beyond
-IMPACT_G (a landing, a blow) is left out of the means; an IMU without an attitude to level it reads a
-tilted multicopter's thrust as no horizontal force at all, and da stays near zero, the model as before.
+vehicle flies steadily da is mostly 0 (its accelerometers' noise taken out) and the tests are as tight
+as before. What it gives up: a GNSS velocity spoof written into a hard manoeuvre is tested against the
+looser model for that interval. A specific force beyond IMPACT_G (a landing, a blow) is left out of
+the means; an IMU without an attitude to level it reads a tilted multicopter's thrust as no horizontal
+force at all, and da stays near zero, the model as before. A stream too slow to integrate (1 to 4 Hz
+telemetry) is not heard (the monitor gives it nothing): its samples are points, not means, and its
+vibration and the attitude's lag read as changes of several m/s^2.
 """
 
 from __future__ import annotations
 
 import math
 
-from guard.core.aiding.impact import IMPACT_G
+from guard.core.aiding.impact import G, IMPACT_G
 
-G = 9.80665
 MAX_DT_S = 1.0          # s: the yaw rate is integrated over no longer a step than this
 MAX_APART_S = 3.0       # s: two intervals' means further apart than this are not compared
 
