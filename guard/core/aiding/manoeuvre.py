@@ -68,13 +68,14 @@ class AccelChange:
         (noise_var: the two axes' variances of one sample, summed) makes of two means of n and m samples,
         noise_var (1/n + 1/m); and a new interval begun. 0 where either interval heard no sample, or
         they are over MAX_APART_S apart."""
-        if not self.n:
+        count = self.n
+        if not count:
             return 0.0
-        e, n = self.sum_e / self.n, self.sum_n / self.n
-        last, self.last = self.last, (t_us, e, n, self.n)
+        east, north = self.sum_e / count, self.sum_n / count
+        last, self.last = self.last, (t_us, east, north, count)
         self.sum_e = self.sum_n = 0.0
         self.n = 0
         if last is None or t_us - last[0] > MAX_APART_S * 1e6:
             return 0.0
-        d2 = (e - last[1]) ** 2 + (n - last[2]) ** 2 - noise_var * (1.0 / self.last[3] + 1.0 / last[3])
+        d2 = (east - last[1]) ** 2 + (north - last[2]) ** 2 - noise_var * (1.0 / count + 1.0 / last[3])
         return math.sqrt(d2) if d2 > 0.0 else 0.0
