@@ -19,7 +19,8 @@ MAVPROXY := MAVProxy==1.8.75
 # The suite on every core, each test file on one worker (its module fixtures run once), without
 # the tests marked long (a claim's further seeds, the longest drives: tests/conftest.py), which
 # `make test-long` runs. `make test PYTEST_ARGS=` runs both tiers, serially.
-PYTEST_ARGS ?= -n auto --dist loadfile -m "not long"
+PARALLEL := -n auto --dist loadfile
+PYTEST_ARGS ?= $(PARALLEL) -m "not long"
 
 install-test: $(BIN)/python
 	$(BIN)/python -m pip install --quiet -e '.[test]'
@@ -32,7 +33,7 @@ test: install-test
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
 
 test-long: install-test
-	$(BIN)/python -m pytest -n auto --dist loadfile -m long
+	$(BIN)/python -m pytest $(PARALLEL) -m long
 
 clean:
 	rm -rf $(VENV) build *.egg-info
