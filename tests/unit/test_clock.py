@@ -7,7 +7,7 @@ import numpy as np
 import pymap3d
 import pytest
 
-from guard.sources.clock import epoch_clock, epoch_rate, motion_clock, motion_rate
+from guard.sources.clock import epoch_clock, epoch_rate, gnss_time_clock, motion_clock, motion_rate
 
 LAT0, LON0 = 43.0, -2.6
 
@@ -86,3 +86,50 @@ def test_a_receiver_read_by_a_good_clock_or_a_telemetry_stream_is_left_as_logged
     assert epoch_rate(scattered.tolist()) is None
     assert epoch_rate(epochs(100, 1.083)) is None                       # too few to judge
     assert epoch_clock(epochs(1500, 1.0, period_ms=1000.0 / 9), notes) is None     # a 9 Hz receiver is one
+
+
+def gnss_times(rate, seconds=300.0, hz=5.0, stale=0.0, late=0.0, seed=0):
+    """(boot s, GNSS s) of fixes of a receiver at `hz`, stamped by a clock `rate` times too slow on a
+    20 ms loop; a share `stale` of them carries the GNSS time of the epoch before (its driver had not yet
+    updated it), a share `late` is read up to 0.9 s late."""
+    rng = np.random.default_rng(seed)
+    boot, gps = [], []
+    for k in range(int(seconds * hz)):
+        t = k / hz
+        b = math.ceil(t / rate / 0.02) * 0.02
+        if rng.random() < late:
+            b += rng.uniform(0.2, 0.9) / rate
+        boot.append(b)
+        gps.append(1_000_000.0 + t - (1.0 / hz if rng.random() < stale else 0.0))
+    return boot, gps
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_a_slow_clock_is_found_by_the_gnss_time_past_fixes_whose_time_lags(seed):
+    """The Erle copters' DataFlash logs: 9 to 23 % of their fixes carry a GNSS time an epoch behind
+    (or were read late), which a line through all of them takes for jitter. Three quarters on a line
+    are a clock: found, those left out counted."""
+    for stale, late in ((0.15, 0.0), (0.1, 0.05), (0.2, 0.0)):
+        notes = []
+        t0, rate = gnss_time_clock(*gnss_times(1.083, stale=stale, late=late, seed=seed), notes)
+        assert rate == pytest.approx(1.083, abs=5e-4), (stale, late)
+        assert len(notes) == 1 and "8.3 % slow against the GNSS receiver's" in notes[0], notes
+        left = int(notes[0].split("(")[1].split(" of its")[0])
+        assert 0.5 * (stale + late) * 1500 < left < 1.5 * (stale + late) * 1500, notes
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_gnss_time_that_is_no_line_corrects_nothing(seed):
+    """Too many strays (a third of the fixes), or a GNSS time that jumps by a minute half-way (a receiver
+    restarting, or a spoofer moving its clock): said, left as logged. A clock that keeps time, its
+    strays or not: nothing said."""
+    notes = []
+    assert gnss_time_clock(*gnss_times(1.083, stale=0.2, late=0.15, seed=seed), notes) is None
+    assert len(notes) == 1 and "time stamps left as logged" in notes[0], notes
+    boot, gps = gnss_times(1.083, seed=seed)
+    gps = [g + (60.0 if k > len(gps) // 2 else 0.0) for k, g in enumerate(gps)]
+    notes = []
+    assert gnss_time_clock(boot, gps, notes) is None and "left as logged" in notes[0], notes
+    for stale in (0.0, 0.15):
+        notes = []
+        assert gnss_time_clock(*gnss_times(1.0, stale=stale, seed=seed), notes) is None and notes == [], notes
