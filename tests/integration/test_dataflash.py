@@ -226,6 +226,28 @@ def test_verdicts_from_test_ratios_and_messages(tmp_path):
     assert "no IMU messages in this log" in reader.notes
 
 
+UBX3 = LogFormat(142, "UBX3", "IBfff", "TimeMS,Instance,hAcc,vAcc,sAcc")
+
+
+def test_a_receivers_accuracy_in_ubx3_rows_is_said_not_read(paper, tmp_path):
+    """An older log's UBX3 rows carry the receiver's hAcc and sAcc: not read (README, "The receiver's own
+    accuracy"), and said, so that the user knows its fixes are tested as an unreporting receiver's."""
+    _, bin_ = paper
+    unreported = bin_.read_bytes().replace(b"GPA\x00", b"GPZ\x00", 1)    # GPA's rows now an unknown type's
+    without, old = tmp_path / "no_gpa.bin", tmp_path / "ubx3.bin"
+    without.write_bytes(unreported)
+    old.write_bytes(unreported + declare(UBX3)
+                    + b"".join(message(UBX3, 1000 + 200 * k, 0, 0.8, 1.2, 0.3) for k in range(100)))
+    plain, with_ubx3 = replay(str(without)), replay(str(old))
+    said = [n for n in with_ubx3["notes"] if "UBX3" in n]
+    assert len(said) == 1 and "is not read" in said[0], with_ubx3["notes"]
+    assert not any("UBX3" in n for n in plain["notes"])
+    assert alarms(with_ubx3) == alarms(plain) and with_ubx3["peak_ratio"] == plain["peak_ratio"]
+    both = tmp_path / "gpa_and_ubx3.bin"      # a log with GPA is read by its GPA: nothing to say
+    both.write_bytes(bin_.read_bytes() + declare(UBX3) + message(UBX3, 1000, 0, 0.8, 1.2, 0.3))
+    assert not any("UBX3" in n for n in replay(str(both))["notes"])
+
+
 # -- bad input -----------------------------------------------------------------------------------------
 def bad_copies(bin_: Path, out: Path) -> dict[str, Path]:
     """Cut mid-message, overwritten with random bytes in the middle, an undeclared type in the middle,

@@ -77,7 +77,7 @@ class DataFlashReader(LogSource):
         self._gnss_n, self._gnss = survey.choose(lg, "GPS", gnss, "--gnss", self.path, self.notes)
         self._mag = lg.instances("MAG").get(0)
         self._att = ("ATT", lg.offsets("ATT")) if lg.offsets("ATT") else None
-        self._accuracy = survey.accuracies(lg, self._gnss, self._gnss_n)
+        self._accuracy = survey.accuracies(lg, self._gnss, self._gnss_n, self.notes)
         self.date, self.utc_offset_us = survey.gps_utc(lg, self._gnss)
         # (t0, rate) or None: as logged (`as_logged`: the time stamps as the autopilot wrote them, always)
         self.clock = None if as_logged else survey.clock_rate(lg, self._gnss, self.notes)

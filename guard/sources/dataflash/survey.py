@@ -94,13 +94,20 @@ def choose(log: Log, base: str, wanted: int | None, option: str, path: str,
     return n, found[n]
 
 
-def accuracies(log: Log, gnss: tuple | None, n: int | None) -> dict[int, tuple[float | None, float | None]]:
+def accuracies(log: Log, gnss: tuple | None, n: int | None,
+               notes: list[str] | None = None) -> dict[int, tuple[float | None, float | None]]:
     """GPA's horizontal and speed accuracy (m, m/s) by time stamp, for the GPS instance used, `n`
-    (ArduPilot writes GPS and GPA with one time stamp)."""
+    (ArduPilot writes GPS and GPA with one time stamp). An older log's UBX3 rows (ArduPilot 3.2 and
+    3.3 on a u-blox: hAcc, sAcc, stamped apart from its GPS rows) are not read, and that is said: the
+    fixes are taken as a receiver's that reports none (README, "The receiver's own accuracy": read,
+    they traded detections for alarms, and were no truer a model)."""
     if gnss is None:
         return {}
     gpa = log.instances("GPA").get(n)
     if gpa is None:
+        if notes is not None and log.offsets("UBX3"):
+            notes.append("the receiver's accuracy logged in UBX3 rows (hAcc, sAcc) is not read: its fixes are "
+                         "tested as a receiver's that reports none (README)")
         return {}
     def known(a) -> float | None:       # 0: not known; not a positive finite number: a corrupt format
         return a if isinstance(a, int | float) and 0 < a < math.inf else None
