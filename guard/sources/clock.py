@@ -6,8 +6,8 @@ against the GNSS time every fix carries (a DataFlash GPS row's week and millisec
 time_utc_usec) as a line over the whole log: parted by more than CLOCK_TOLERANCE in a straight line,
 the time stamps are put on the receiver's time and that is said; a GNSS time that jumps (a receiver
 restarting, or a spoofer moving it) is not a line, and corrects nothing. A line that holds three
-quarters of the fixes is one, the rest left out and counted (`stray_line`: fixes whose GNSS time was
-not yet updated, or that were read late).
+quarters of the fixes is one, the rest left out and counted, if each of them lags it by at most
+CLOCK_LAG_MAX_S (`stray_line`: fixes whose GNSS time was not yet updated, or that were read late).
 
 A tlog's GPS_RAW_INT has no GPS week or time of week: only the autopilot's boot clock stamps it. An
 autopilot whose clock does not keep time (the Erle PXF's Linux autopilot of 2014 ran 8 to 10 %
@@ -59,6 +59,7 @@ CLOCK_MIN_S = 30.0          # GNSS time over at least this long before the rate 
 CLOCK_JITTER_S = 0.05       # the fit's rms residual: more, and the two clocks do not run in a line
 CLOCK_STRAY_S = 0.1         # s off the line: a fix the autopilot read late (a busy loop) or logged twice
 CLOCK_INLIERS = 0.75        # the share of the fixes a line must hold, the strays left out, to be a clock
+CLOCK_LAG_MAX_S = 5.0       # s: a stray's GNSS time is behind the line by at most this (an Erle log's: 3.1)
 # the receiver's epochs (guard.sources.clock.epoch_rate)
 EPOCHS_MS = (100.0, 125.0, 200.0, 250.0, 500.0, 1000.0)    # the navigation rates autopilots set: 10 to 1 Hz
 MIN_INTERVALS = 200
@@ -197,12 +198,14 @@ def stray_line(x: list[float], y: list[float]) -> tuple[float, float, int] | Non
     another logs the last time it had when the first is missed, and a busy loop reads a fix late. A
     few points then sit well under the line, which a least-squares fit through all of them reads as
     jitter. The Erle copters of 2014: half of each flight's fixes within 0.01 s of a line 8.3 % slow
-    (the same in every quarter of each flight), and 9 to 23 % of them an epoch (0.2 s) or more
-    behind it, their position fresh where their time repeats the fix before. Started from the median
-    of the slopes between points half the log apart (which the strays cannot move while they are
-    fewer than half), then refitted on the points within CLOCK_STRAY_S until that set holds still. A
-    GNSS time that jumps part-way leaves one side of it off any line: under CLOCK_INLIERS, it is no
-    clock."""
+    (the same in every quarter of each flight), and 9 to 23 % of them an epoch (0.2 s) to 3.1 s
+    behind it, none ahead, their position fresh where their time repeats the fix before. Started
+    from the median of the slopes between points half the log apart (a pair is off if either of its
+    points strays: the median holds while under 29 % of them do, more than CLOCK_INLIERS lets
+    through), then refitted on the points within CLOCK_STRAY_S until that set holds still. Strays
+    are lags: a point ahead of the line by more than CLOCK_STRAY_S, or behind it by more than
+    CLOCK_LAG_MAX_S, is a GNSS time that jumped (a receiver restarting, or a spoofer moving it), and
+    then there is no clock, wherever in the log the jump comes; so too under CLOCK_INLIERS."""
     n, h = len(x), len(x) // 2
     slopes = sorted((y[k + h] - y[k]) / (x[k + h] - x[k]) for k in range(n - h) if x[k + h] > x[k])
     if not slopes:
@@ -224,5 +227,10 @@ def stray_line(x: list[float], y: list[float]) -> tuple[float, float, int] | Non
             return None
         rate = sum((a - mx) * (b - my) for a, b in zip(xs, ys)) / sxx
         c = my - rate * mx
-    rms = math.sqrt(statistics.fmean([(y[k] - c - rate * x[k]) ** 2 for k in kept]))
+    else:
+        return None                 # the set never held still: no line holds these fixes
+    off = [y[k] - c - rate * x[k] for k in range(n)]
+    if any(e > CLOCK_STRAY_S or e < -CLOCK_LAG_MAX_S for e in off):
+        return None                 # a GNSS time ahead of the line, or far behind it: one that jumped
+    rms = math.sqrt(statistics.fmean([off[k] ** 2 for k in kept]))
     return rate, rms, n - len(kept)

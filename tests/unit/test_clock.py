@@ -120,16 +120,19 @@ def test_a_slow_clock_is_found_by_the_gnss_time_past_fixes_whose_time_lags(seed)
 
 @pytest.mark.parametrize("seed", [1, 2])
 def test_a_gnss_time_that_is_no_line_corrects_nothing(seed):
-    """Too many strays (a third of the fixes), or a GNSS time that jumps by a minute half-way (a receiver
-    restarting, or a spoofer moving its clock): said, left as logged. A clock that keeps time, its
-    strays or not: nothing said."""
+    """Too many strays (a third of the fixes), or a GNSS time that jumps by a minute, ahead or back, early,
+    half-way or late in the log (a receiver restarting, or a spoofer moving its clock): said, left as
+    logged, whether the clock keeps time or not. A clock that keeps time, its strays or not: nothing
+    said."""
     notes = []
     assert gnss_time_clock(*gnss_times(1.083, stale=0.2, late=0.15, seed=seed), notes) is None
     assert len(notes) == 1 and "time stamps left as logged" in notes[0], notes
-    boot, gps = gnss_times(1.083, seed=seed)
-    gps = [g + (60.0 if k > len(gps) // 2 else 0.0) for k, g in enumerate(gps)]
-    notes = []
-    assert gnss_time_clock(boot, gps, notes) is None and "left as logged" in notes[0], notes
+    for rate in (1.083, 1.0):       # a minute ahead or behind, from 10, 50 or 90 % of the log on
+        for at, jump in ((0.1, 60.0), (0.5, 60.0), (0.9, 60.0), (0.9, -60.0), (0.1, -60.0)):
+            boot, gps = gnss_times(rate, seed=seed)
+            gps = [g + (jump if k > at * len(gps) else 0.0) for k, g in enumerate(gps)]
+            notes = []
+            assert gnss_time_clock(boot, gps, notes) is None and "left as logged" in notes[0], (rate, at, jump, notes)
     for stale in (0.0, 0.15):
         notes = []
         assert gnss_time_clock(*gnss_times(1.0, stale=stale, seed=seed), notes) is None and notes == [], notes
