@@ -173,7 +173,7 @@ def gnss_time_clock(boot: list[float], gps: list[float], notes: list[str]) -> tu
     rate = sum((a - mx) * (b - my) for a, b in zip(x, y)) / sxx
     rms = math.sqrt(statistics.fmean([(b - my - rate * (a - mx)) ** 2 for a, b in zip(x, y)]))
     strays = 0
-    if rms > CLOCK_JITTER_S:        # a line through most of them, the fixes stamped late or twice left out?
+    if rms > CLOCK_JITTER_S:        # a line through most of them, the fixes whose GNSS time lags left out?
         held = stray_line(x, y)
         if held is not None:
             rate, rms, strays = held
