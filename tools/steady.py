@@ -18,7 +18,6 @@ the exit status is that of the first failing run (0 if none failed).
 from __future__ import annotations
 
 import argparse
-import re
 import shlex
 import subprocess
 import sys
@@ -30,9 +29,12 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def make_test_args(clone: Path) -> list[str]:
-    """The pytest arguments `make test` passes (the Makefile's `PYTEST_ARGS ?= ...`)."""
-    m = re.search(r"^PYTEST_ARGS\s*\?=(.*)$", (clone / "Makefile").read_text(), re.M)
-    return shlex.split(m.group(1)) if m else []
+    """The pytest arguments `make test` passes (the Makefile's PYTEST_ARGS, as make expands it: it may be
+    written with the Makefile's other variables)."""
+    run = subprocess.run(["make", "-s", "--no-print-directory", "--eval",
+                          "print-pytest-args: ; $(info $(PYTEST_ARGS))@:", "print-pytest-args"],
+                         cwd=clone, capture_output=True, text=True)
+    return shlex.split(run.stdout) if run.returncode == 0 else []
 
 
 def without_marks(pytest_args: list[str]) -> list[str]:
