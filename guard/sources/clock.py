@@ -57,7 +57,7 @@ CLOCK_LIMIT = 0.2           # beyond 20 % the time stamps are not a clock at all
 CLOCK_TOLERANCE = 0.002     # a crystal is within 50 ppm: 0.2 % apart is a clock that is not keeping time
 CLOCK_MIN_S = 30.0          # GNSS time over at least this long before the rate is judged
 CLOCK_JITTER_S = 0.05       # the fit's rms residual: more, and the two clocks do not run in a line
-CLOCK_STRAY_S = 0.1         # s off the line: a fix the autopilot read late (a busy loop) or logged twice
+CLOCK_STRAY_S = 0.1         # s off the line: a fix whose GNSS time lags it (not yet updated, or read late)
 CLOCK_INLIERS = 0.75        # the share of the fixes a line must hold, the strays left out, to be a clock
 CLOCK_LAG_MAX_S = 5.0       # s: a stray's GNSS time is behind the line by at most this (an Erle log's: 3.1)
 # the receiver's epochs (guard.sources.clock.epoch_rate)
@@ -166,12 +166,11 @@ def gnss_time_clock(boot: list[float], gps: list[float], notes: list[str]) -> tu
     b0, g0 = boot[0], gps[0]
     x = [b - b0 for b in boot]
     y = [g - g0 for g in gps]
-    mx, my = statistics.fmean(x), statistics.fmean(y)
-    sxx = sum((a - mx) ** 2 for a in x)
-    if sxx <= 0.0:
+    line = _line(x, y)
+    if line is None:
         return None
-    rate = sum((a - mx) * (b - my) for a, b in zip(x, y)) / sxx
-    rms = math.sqrt(statistics.fmean([(b - my - rate * (a - mx)) ** 2 for a, b in zip(x, y)]))
+    rate, c = line
+    rms = math.sqrt(statistics.fmean([(b - c - rate * a) ** 2 for a, b in zip(x, y)]))
     strays = 0
     if rms > CLOCK_JITTER_S:        # a line through most of them, the fixes whose GNSS time lags left out?
         held = stray_line(x, y)
@@ -189,6 +188,16 @@ def gnss_time_clock(boot: list[float], gps: list[float], notes: list[str]) -> tu
             "line: not yet updated, or read late)") if strays else ""
     notes.append(f"{said} over {boot[-1] - b0:.0f} s{left}: every time stamp scaled by {rate:.4f}")
     return int(b0 * 1e6), rate
+
+
+def _line(x: list[float], y: list[float]) -> tuple[float, float] | None:
+    """(rate, c) of the least-squares line y = c + rate x; None where every x is the same."""
+    mx, my = statistics.fmean(x), statistics.fmean(y)
+    sxx = sum((a - mx) ** 2 for a in x)
+    if sxx <= 0.0:
+        return None
+    rate = sum((a - mx) * (b - my) for a, b in zip(x, y)) / sxx
+    return rate, my - rate * mx
 
 
 def stray_line(x: list[float], y: list[float]) -> tuple[float, float, int] | None:
@@ -220,13 +229,10 @@ def stray_line(x: list[float], y: list[float]) -> tuple[float, float, int] | Non
         if near == kept:
             break
         kept = near
-        xs, ys = [x[k] for k in kept], [y[k] for k in kept]
-        mx, my = statistics.fmean(xs), statistics.fmean(ys)
-        sxx = sum((a - mx) ** 2 for a in xs)
-        if sxx <= 0.0:
+        line = _line([x[k] for k in kept], [y[k] for k in kept])
+        if line is None:
             return None
-        rate = sum((a - mx) * (b - my) for a, b in zip(xs, ys)) / sxx
-        c = my - rate * mx
+        rate, c = line
     else:
         return None                 # the set never held still: no line holds these fixes
     off = [y[k] - c - rate * x[k] for k in range(n)]

@@ -95,7 +95,7 @@ def choose(log: Log, base: str, wanted: int | None, option: str, path: str,
 
 
 def accuracies(log: Log, gnss: tuple | None, n: int | None,
-               notes: list[str] | None = None) -> dict[int, tuple[float | None, float | None]]:
+               notes: list[str]) -> dict[int, tuple[float | None, float | None]]:
     """GPA's horizontal and speed accuracy (m, m/s) by time stamp, for the GPS instance used, `n`
     (ArduPilot writes GPS and GPA with one time stamp). An older log's UBX3 rows (ArduPilot 3.2 and
     3.3 on a u-blox: hAcc, sAcc, stamped apart from its GPS rows) are not read, and that is said: the
@@ -105,7 +105,7 @@ def accuracies(log: Log, gnss: tuple | None, n: int | None,
         return {}
     gpa = log.instances("GPA").get(n)
     if gpa is None:
-        if notes is not None and log.offsets("UBX3"):
+        if log.offsets("UBX3"):
             notes.append("the receiver's accuracy logged in UBX3 rows (hAcc, sAcc) is not read: its fixes are "
                          "tested as a receiver's that reports none (README)")
         return {}
