@@ -13,7 +13,10 @@ taken:
   heard in between (before, it waited for the silent kind for good, and nothing was monitored
   again). Stray frames do not: forged ones must come as a run of a stream, which does no more than
   a forged fix and IMU sample already can (below);
-- a lone frame with a wild time stamp (a glitch, or a forged frame) is dropped and counted. One
+  What was held until a base was confirmed is not used (the filter starts again on the sample that
+  confirmed it) and is counted as `new_base_held`, apart from the wild stamps;
+- a lone frame with a wild time stamp (a glitch, or a forged frame) is dropped and counted
+  (`time_off_base`). One
   stamped ahead within `max_gap_s` is on the base and is taken: it moves the filter's time on, the
   genuine streams held behind it then agree on theirs, and guard starts again there (a forged frame
   can do that much, and no more: a GNSS alarm stands through it).
@@ -89,6 +92,13 @@ class Timebase:
             sole = len(c) == 1 and n + 1 >= 2 and max(prev, t_us) - first >= SOLE_SPAN_US
             if (set(c) >= self.heard and (len(self.heard) > 1 or n + 1 >= 2)) or sole:
                 self.sole = (kind, start) if sole and len(self.heard) > 1 else None
+                # the samples held while the base waited to be confirmed were its first, not wild stamps
+                held = sum(v[3] for v in c.values()) - 1
+                self.skipped["time_off_base"] -= held
+                if self.skipped["time_off_base"] <= 0:
+                    del self.skipped["time_off_base"]
+                if held:
+                    self.skipped["new_base_held"] += held
                 return "rebase"
             self.skipped["time_off_base"] += 1
             return "drop"

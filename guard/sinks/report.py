@@ -32,7 +32,9 @@ SKIPPED = {
     "imu_no_compass": "IMU samples of an air vehicle without a compass, not integrated (GNSS tested alone)",
     "imu_impact": "IMU samples within 0.5 s of a blow over 3 g (a landing, a kerb): set aside, the GNSS holding",
     "imu_no_magnetometer": "IMU samples without any magnetometer reading (no heading reference)",
-    "time_off_base": "samples stamped far off the stream's time base",
+    "time_off_base": "samples stamped far off the stream's time base (a wild stamp, or a base never confirmed)",
+    "new_base_held": "samples on a new time base (a reboot, or every stream back after a silence), held until the "
+                     "base was confirmed (by the other stream, or by 3 s of their own): not used",
     "attitude_non_finite": "attitude messages with a non-finite or impossible roll or pitch",
     "gnss_bad_position": "GNSS fixes with an impossible position (or 0, 0)",
     "gnss_bad_velocity": "GNSS fixes with an impossible velocity",

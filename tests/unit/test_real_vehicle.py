@@ -229,6 +229,8 @@ def test_a_reboot_keeps_what_was_learnt_of_the_vehicle(offset_deg):
     standing = drive(30.0, speed=0.0, yaw=0.4, seed=12, mag_offset_deg=offset_deg)    # from 1 s again
     mon, events = run(moving + standing, GROUND)
     assert of(events, Alarm) == []
+    # the new clock's samples before a fix confirmed it were held: counted as that, not as wild stamps
+    assert not mon.skipped["time_off_base"] and 1 <= mon.skipped["new_base_held"] <= 5, mon.skipped
     notes = [n for n in of(events, Notice) if "re-initialised" in n.text or "kept what it learnt" in n.text]
     assert [n.text.split(":")[0] for n in notes] == ["time jumped -120.0 s", "kept what it learnt of the vehicle"]
     after = of(events[events.index(notes[0]):], Estimate)
@@ -288,7 +290,9 @@ def test_one_forged_frame_on_gnss_alone_neither_starts_a_new_filter_nor_walks_th
     # their own base at the next fix (a new filter), and no genuine fix is held for long
     forged = dataclasses.replace(samples[k], t_us=samples[k].t_us + 9_900_000)
     mon, events = run(samples[:k + 1] + [forged] + samples[k + 1:], AIR)
-    assert mon.gnss_index >= fixes and mon.skipped["time_off_base"] <= 15, mon.skipped    # the IMU's, till a fix
+    # the IMU's samples behind it, held till a fix confirms their base: its first samples, not wild stamps
+    assert mon.gnss_index >= fixes and not mon.skipped["time_off_base"] and mon.skipped["new_base_held"] <= 15, \
+        mon.skipped
     imu = next(s for s in samples[k:] if not isinstance(s, GnssFix))
     walk = [dataclasses.replace(imu, t_us=imu.t_us + j * 9_000_000) for j in range(1, 40)]
     mon, events = run(samples[:k + 1] + walk + samples[k + 1:], AIR)
@@ -309,7 +313,8 @@ def test_an_imu_stream_that_stops_then_a_gnss_silence_holds_no_fix_for_good(cfg,
     mon, events = runs.run(samples, cfg, at_us=(T0_US + 30e6, T0_US + 40e6))     # the runs below begin so
     said = [n.text for n in of(events, Notice) if "re-initialised" in n.text]
     assert len(said) == 1 and said[0].startswith("time jumped +15.") and "GNSS fixes alone" in said[0], said
-    assert 14 <= mon.skipped["time_off_base"] <= 16, mon.skipped           # 3 s of fixes at 5 Hz
+    # 3 s of fixes at 5 Hz, held until they confirmed their base: counted as such, not as wild stamps
+    assert 14 <= mon.skipped["new_base_held"] <= 16 and not mon.skipped["time_off_base"], mon.skipped
     assert min(e.t_us for e in of(events, Estimate) if e.t_us > T0_US + 40e6) <= T0_US + 58.5e6
     assert not of(events, Alarm)
     fixes = runs.run(samples := drive(60.0, yaw=0.4, seed=seed, mag=(lambda t: False) if cfg is AIR else None),
