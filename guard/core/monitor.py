@@ -42,6 +42,7 @@ from guard.core.aiding.manoeuvre import AccelChange
 from guard.core.aiding.noisecap import NoiseCap
 from guard.core.aiding.motors import MotorWatch, offset_q
 from guard.core.aiding.tilt import Tilt
+from guard.core.aiding.vertical import VerticalCheck
 from guard.core.anchor import Learnt, diverged, initial_state
 from guard.core.detectors import DetectorConfig, make_detector
 from guard.core.drift import Drift
@@ -128,6 +129,7 @@ class Monitor:
         self.imu_rate = RateWatch(self.cfg.min_imu_hz)
         self.compass = CompassWatch()               # whether an air vehicle has a compass at all
         self.motors = MotorWatch()                  # the motors' start and stop, heard in the IMU
+        self.vertical = VerticalCheck()             # the accelerometers' vertical reading against the altitude
         self.noise_cap = NoiseCap(NOISE_CAP)        # an IMU noisier than the tests take: said once per sensor
         self._last_mag: tuple[float, float] | None = None     # levelled (m_x, m_y) of the latest IMU sample
         self._learnt: Learnt | None = None          # what a restarted filter keeps of the vehicle (_reinitialise)
@@ -252,6 +254,7 @@ class Monitor:
         autopilot calibrates its gyro and accelerometers at boot, so their biases start anew. A
         diverged filter keeps nothing: what it learnt may be what went wrong."""
         events: list[Event] = [Notice(t_us, "warning", f"{why}: filter re-initialised")]
+        self.vertical.gap()
         self._learnt = Learnt.of(self.ekf) if keep_learnt and self.ekf is not None else None
         if self._learnt is not None:
             events.append(Notice(t_us, "info", f"kept what it learnt of the vehicle: {self._learnt}"))
@@ -321,6 +324,7 @@ class Monitor:
         if self.gnss_lost:
             self.gnss_lost = False
             events.append(Notice(fix.t_us, "info", "GNSS fix back" if self.ekf else "GNSS fix: monitoring starts"))
+        events += self.vertical.fix(fix.t_us, fix.alt_m)
         if self.ekf is None:
             coarse = self.gnss_aid.too_coarse_to_start(fix)
             if coarse:                              # a receiver still finding itself is no reference
@@ -559,7 +563,8 @@ class Monitor:
             since, self._imu_silent = self._imu_silent_since, False
             after = "" if since is None or s.t_us < since else f" after {(s.t_us - since) / 1e6:.1f} s"
             events.append(Notice(s.t_us, "info", f"IMU samples again{after}"))
-        ax, ay, rate, mag, tilt, tilt_rate = level(s, *self.tilt.at(s))
+        roll_pitch = self.tilt.at(s)
+        ax, ay, rate, mag, tilt, tilt_rate = level(s, *roll_pitch)
         self._last_mag = mag
         events += self._compass(s.t_us, mag is not None)
         aside = self.inertial and self.ekf is not None and self._blow(s, events)
@@ -572,6 +577,11 @@ class Monitor:
         # few seconds (43 lines on a real 10-minute flight) of a window no test used
         if self.imu_rate.fast is not False:
             events += self.motors.step(s.t_us, self.imu_aid.noise.vibration(), self.ekf)
+        if self.imu_rate.fast:
+            if aside:
+                self.vertical.gap()
+            else:
+                events += self.vertical.imu(s, *roll_pitch)
         if self.inertial is False:
             if self.imu_rate.fast:                  # a slow stream's samples are points, not means
                 self.manoeuvre.add(s.t_us, ax, ay, rate)
