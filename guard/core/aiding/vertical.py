@@ -3,9 +3,8 @@
 guard's filter is horizontal: the accelerometers' vertical axis enters no test. Yet it is the axis
 a failing accelerometer shows first. Under vibration past its range an accelerometer clips, and the
 mean of what it reads is no longer the mean of what it felt (vibration rectification): a real Erle
-copter of the README hovered with its levelled vertical specific force at 0 to 2 m/s^2 upward for
-seconds where gravity alone gives 9.8, and its horizontal axes were off by metres per second squared
-with it. A bias written into the vertical axis (false data injected into the IMU) shows the same way.
+copter of the README hovered with its levelled vertical specific force at 0 to 3 m/s^2 for seconds
+where gravity alone gives 9.8, and its horizontal axes were off by metres per second squared with it. A bias written into the vertical axis (false data injected into the IMU) shows the same way.
 
 The check compares two measures of the vehicle's vertical acceleration over seconds: the IMU's
 levelled specific force less gravity (f_up = -f_z - g, each sample levelled with the autopilot's roll
@@ -15,9 +14,9 @@ bins of BIN_S; at each bin's end, with the latest six bins' mean altitudes H,
     a_gnss = (h3 - 2 h2 + h1) / W^2,   h1, h2, h3 the means of bins (1, 2), (3, 4), (5, 6), W = 2 BIN_S
 
 and a_imu the mean of f_up over bins 2 to 5 (the span whose acceleration the second difference
-weighs). Their difference d is the receiver's altitude noise (0.1 to 0.5 m/s^2 on the real flights of
-the README, at most 1.2 on clean ones, 2.9 on a hard-flown one) plus what the accelerometer gets
-wrong. Where |d| passes DIFF_MPS2 on SUSTAIN checks in a row while the GNSS shows the vehicle holding
+weighs). Their difference d is the receiver's altitude noise and the vehicle's own (0.01 to 1.6 m/s^2
+at the median of each public flight of the README it is not said on, 2.9 at most on a hard-flown one
+that holds its climb: README, "An IMU that does not read the vehicle") plus what the IMU gets wrong. Where |d| passes DIFF_MPS2 on SUSTAIN checks in a row while the GNSS shows the vehicle holding
 its climb (|a_gnss| under STEADY_MPS2: a receiver's altitude jump is not the IMU's fault), something
 does not read the vehicle, and a WARNING says what, with the figures, once per episode (again only
 after QUIET_S of checks back under it):
@@ -66,7 +65,8 @@ def upward(s: ImuSample, phi: float, p: float) -> float:
 
 class VerticalCheck:
     def __init__(self):
-        self.bins: deque = deque(maxlen=6)      # (altitude mean, f_up mean) of the latest complete bins, or None
+        # the latest complete bins: (altitude, f_up, f_x, f_y, f_z), each its mean over the bin; None where short
+        self.bins: deque = deque(maxlen=6)
         self._start: int | None = None          # the current bin's start (us)
         self._alt = [0.0, 0]                    # sum and count in the current bin
         self._up = [0.0, 0, 0.0, 0.0, 0.0]     # sum of f_up, count, sums of the body's specific force x, y, z
