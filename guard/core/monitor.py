@@ -42,6 +42,7 @@ from guard.core.aiding.manoeuvre import AccelChange
 from guard.core.aiding.noisecap import NoiseCap
 from guard.core.aiding.motors import MotorWatch, offset_q
 from guard.core.aiding.tilt import Tilt
+from guard.core.aiding.rest import RestCheck
 from guard.core.aiding.vertical import VerticalCheck
 from guard.core.anchor import Learnt, diverged, initial_state
 from guard.core.detectors import DetectorConfig, make_detector
@@ -130,6 +131,7 @@ class Monitor:
         self.compass = CompassWatch()               # whether an air vehicle has a compass at all
         self.motors = MotorWatch()                  # the motors' start and stop, heard in the IMU
         self.vertical = VerticalCheck()             # the accelerometers' vertical reading against the altitude
+        self.rest = RestCheck()                     # ... and their reading of gravity at rest
         self.noise_cap = NoiseCap(NOISE_CAP)        # an IMU noisier than the tests take: said once per sensor
         self._last_mag: tuple[float, float] | None = None     # levelled (m_x, m_y) of the latest IMU sample
         self._learnt: Learnt | None = None          # what a restarted filter keeps of the vehicle (_reinitialise)
@@ -325,6 +327,7 @@ class Monitor:
             self.gnss_lost = False
             events.append(Notice(fix.t_us, "info", "GNSS fix back" if self.ekf else "GNSS fix: monitoring starts"))
         events += self.vertical.fix(fix.t_us, fix.alt_m)
+        self.rest.fix(fix.t_us, None if fix.vel_n_mps is None else math.hypot(fix.vel_n_mps, fix.vel_e_mps))
         if self.ekf is None:
             coarse = self.gnss_aid.too_coarse_to_start(fix)
             if coarse:                              # a receiver still finding itself is no reference
@@ -582,6 +585,10 @@ class Monitor:
                 self.vertical.gap()
             else:
                 events += self.vertical.imu(s, *roll_pitch)
+        if aside:                                   # at any rate: at rest, a point is as good as a mean
+            self.rest.gap()
+        else:
+            events += self.rest.imu(s)
         if self.inertial is False:
             if self.imu_rate.fast:                  # a slow stream's samples are points, not means
                 self.manoeuvre.add(s.t_us, ax, ay, rate)
