@@ -85,6 +85,11 @@ def _replay(args) -> int:
             print(f"  {line}")
         if line := position_said(report["position_wander"]):
             print(f"  {line}")
+        if rest := report["accelerometers_at_rest"]:
+            from guard.core.aiding.rest import G, WINDOW_S
+            print(f"  the accelerometers at rest read {rest['median_mps2']:.2f} m/s^2 where gravity is {G:.2f} "
+                  f"(the median of {rest['windows']} windows of {WINDOW_S:g} s, {rest['min_mps2']:.2f} to "
+                  f"{rest['max_mps2']:.2f})")
         for reason, n in sorted(report["skipped"].items(), key=lambda kv: -kv[1]):
             print(f"  skipped {n} {SKIPPED.get(reason, reason.replace('_', ' '))}")
         for reason, n in sorted(report["adjusted"].items(), key=lambda kv: -kv[1]):

@@ -150,6 +150,8 @@ class ReportSink(Sink):
             "estimate_to_fix_m": self.gap.summary(),
             # the compass's offset with the motors still (rad; guard.core.aiding.motors), what guard tune writes
             "compass_offset_still_rad": monitor.motors.still_offset(monitor.ekf),
+            # the accelerometers' reading of gravity in the windows judged at rest (guard.core.aiding.rest)
+            "accelerometers_at_rest": monitor.rest.summary(),
         }
 
 

@@ -87,7 +87,8 @@ def thin(src: str, dst: str, hz: float) -> None:
 @pytest.mark.parametrize("hz", [1.0, 1000.0])
 def test_autopilot_logs_as_telemetry_streams_them(shared, tmp_path, name, hz):
     """At 1 Hz the IMU is not integrated (said once) and GNSS is tested on its own; at full rate the
-    reboot re-initialises the filter once; repeated frames are counted; no alarm either way."""
+    reboot re-initialises the filter once; repeated frames are counted; no alarm either way; and the
+    accelerometers' reading at rest is judged at either rate, and found to be g."""
     path = str(tmp_path / f"{name}.tlog")
     thin(need(shared / "data" / "ardupilot-sitl" / f"{name}.tlog"), path, hz)
     report = replay(path)
@@ -96,6 +97,9 @@ def test_autopilot_logs_as_telemetry_streams_them(shared, tmp_path, name, hz):
     assert sum("filter re-initialised" in n for n in notes) == 1, notes
     assert sum("not integrated" in n for n in notes) == (1 if hz < 8 else 0), notes
     assert report["skipped"].get("gnss_resent", 0) + report["skipped"].get("imu_resent", 0) > 0
+    rest = report["accelerometers_at_rest"]             # judged at rest at either rate; SITL's IMU reads g
+    assert rest["windows"] >= 2 and abs(rest["median_mps2"] - 9.80665) < 0.1, rest
+    assert not [n for n in notes if "at rest over" in n]
 
 
 def test_the_autopilots_attitude_is_carried_to_each_imu_sample_by_the_gyro(shared):
