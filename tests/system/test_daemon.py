@@ -970,3 +970,30 @@ def test_accelerometers_that_stop_reading_the_vehicle_are_said_on_the_link():
         assert len(lines) == said, joined(got)
         assert all(t.startswith("GUARD the accelerometers read the vehicle accelerating -5.") and sev == WARNING
                    for t, sev in lines), lines
+
+
+def test_accelerometers_that_misread_gravity_at_rest_are_said_on_the_link():
+    """A vehicle parked (the simulator's fixes held at its first position, speed 0; RAW_IMU reading
+    gravity alone, the gyro still), its accelerometers reading 850 mG where 1 g is due: the ground
+    station is told, once, at WARNING, with the figure; the same vehicle reading 1000 mG is not."""
+    for z_mg, said in ((-850, 1), (-1000, 0)):
+        first = {}
+
+        def parked(t_us, msg, z_mg=z_mg, first=first):
+            if msg.get_type() == "GPS_RAW_INT":
+                if msg.fix_type >= 3:
+                    first.setdefault("at", (msg.lat, msg.lon, msg.alt))
+                    msg.lat, msg.lon, msg.alt = first["at"]
+                msg.vel = 0
+            elif msg.get_type() == "RAW_IMU":
+                msg.xacc, msg.yacc, msg.zacc = 0, 0, z_mg
+                msg.xgyro = msg.ygyro = msg.zgyro = 0
+        enc, items = scenario_messages("paper", until_s=30, edit=parked)
+        with in_process() as g:
+            peer = g.connect()
+            feed(peer, frames(enc, items), g.d)
+            got = drain(peer)
+        lines = [(t, sev) for t, sev in joined(got) if "at rest over" in t]
+        assert len(lines) == said, joined(got)
+        assert all(t.startswith("GUARD the accelerometers read 8.34 m/s^2 at rest") and sev == WARNING
+                   for t, sev in lines), lines
