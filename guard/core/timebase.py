@@ -109,6 +109,11 @@ class Timebase:
         self.last[kind] = t_us
         return "take"
 
+    def unconfirmed(self) -> int:
+        """How many samples are held for a base not yet confirmed as runs of a stream (two or more of one
+        kind; a lone one is a wild stamp): at the end of a log, a new base it ended before confirming."""
+        return sum(n for _, _, _, n in self.candidate.values() if n >= 2)
+
     def on_imu_clock(self, t_us: int) -> bool:
         """Whether a sample at t_us is where the IMU's latest sample taken is (within CONFIRM_US): a fix
         after a GNSS silence on GNSS alone, the IMU having kept the clock, and not a lone wild stamp."""

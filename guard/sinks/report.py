@@ -33,6 +33,8 @@ SKIPPED = {
     "imu_impact": "IMU samples within 0.5 s of a blow over 3 g (a landing, a kerb): set aside, the GNSS holding",
     "imu_no_magnetometer": "IMU samples without any magnetometer reading (no heading reference)",
     "time_off_base": "samples stamped far off the stream's time base (a wild stamp, or a base never confirmed)",
+    "new_base_at_end": "samples on a new time base the log ended before confirming (a run of one stream's, after "
+                       "a reboot or a silence in its last seconds): not used",
     "new_base_held": "samples on a new time base (a reboot, or every stream back after a silence), held until the "
                      "base was confirmed (by the other stream, or by 3 s of their own): not used",
     "attitude_non_finite": "attitude messages with a non-finite or impossible roll or pitch",
@@ -125,6 +127,11 @@ class ReportSink(Sink):
     def report(self, source, monitor, detector_cfg) -> dict:
         """The report of a replay of `source` (a LogSource) through `monitor`."""
         skipped = Counter(source.skipped) + monitor.skipped
+        # what was still held for a new base when the log ended was no wild stamp, if a stream's run
+        if at_end := min(monitor.timebase.unconfirmed(), skipped["time_off_base"]):
+            skipped["time_off_base"] -= at_end
+            skipped["new_base_at_end"] += at_end
+            skipped = +skipped                      # no count of 0
         duration = 0.0 if source.first_time_us is None else (source.last_time_us - source.first_time_us) / 1e6
         return {
             "source": str(source.path),
