@@ -75,6 +75,11 @@ def _replay(args) -> int:
         if gap["fixes"]:
             print(f"  the estimate from the fixes: {gap['mean']:.1f} m on average, {gap['max']:.1f} m at most, "
                   f"more than {FixGap.FAR_M:g} m at {100 * gap[f'share_over_{FixGap.FAR_M:g}']:.1f} % of them")
+            if (out := gap["excluded"])["fixes"]:
+                fused = gap["fused"]
+                print(f"    at the {fused['fixes']} fixes fused, {fused['mean']:.1f} m on average and {fused['max']:.1f} m "
+                      f"at most; at the {out['fixes']} whose position an alarm had excluded, {out['mean']:.1f} m and "
+                      f"{out['max']:.1f} m (the estimate held by the other sensors)")
         for line in timeline.said():
             print(f"  {line}")
         for note in report["notes"]:

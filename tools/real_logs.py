@@ -350,6 +350,7 @@ def main(argv=None) -> int:
         return 2
     jobs = [(p, args.config, tuple(args.set), tuple(args.attack), args.autopilot) for p in logs]
     results, total, hours, fixes, far_fixes, saw = [], Counter(), 0.0, 0, 0.0, [0, 0]
+    fused_fixes, fused_far, fused_max = 0, 0.0, 0.0     # the same of the fixes whose position was fused
     with ProcessPoolExecutor(max(1, args.jobs)) as ex:
         for r in ex.map(one, jobs):
             results.append(r)
@@ -365,6 +366,9 @@ def main(argv=None) -> int:
             far = gap["share_over_5"]
             fixes += gap["fixes"]
             far_fixes += far * gap["fixes"]
+            fused_fixes += gap["fused"]["fixes"]
+            fused_far += gap["fused"]["share_over_5"] * gap["fused"]["fixes"]
+            fused_max = max(fused_max, gap["fused"]["max"])
             again = f"; {r['n_standing']} a standing alarm again" if r["n_standing"] else ""
             asked = r.get("autopilot_saw")
             if isinstance(asked, list):
@@ -383,7 +387,9 @@ def main(argv=None) -> int:
     standing = sum(r.get("n_standing", 0) for r in results)
     print(f"{n} logs, {hours:.2f} h: {sum(total.values())} alarms ({by}); {standing} of them a standing "
           f"alarm again; {quiet} logs without one; "
-          f"the estimate over 5 m from the fix at {100 * far_fixes / max(fixes, 1):.1f} % of {fixes} fixes")
+          f"the estimate over 5 m from the fix at {100 * far_fixes / max(fixes, 1):.1f} % of {fixes} fixes; "
+          f"at {100 * fused_far / max(fused_fixes, 1):.1f} % of the {fused_fixes} fused ({fused_max:.1f} m at most), "
+          f"the rest excluded by an alarm")
     faulty = [r for r in results if r.get("receiver_beyond_tune")]
     if faulty:
         named = ", ".join(f"{Path(r['log']).parent.name}/{Path(r['log']).name}" for r in faulty)

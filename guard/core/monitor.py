@@ -468,7 +468,8 @@ class Monitor:
     def _estimate(self, t_us: int, gnss_index: int) -> Estimate:
         x, f = self.ekf.x, self.frame
         return Estimate(t_us, gnss_index, float(x[0]), float(x[1]), float(x[TH]), x.copy(),
-                        np.diagonal(self.ekf.P).copy(), (f.lat0, f.lon0, f.alt0), self._fix_en)
+                        np.diagonal(self.ekf.P).copy(), (f.lat0, f.lon0, f.alt0), self._fix_en,
+                        Sensor.GNSS_POS not in self.health.excluded)
 
     def _held_course(self, fix: GnssFix) -> list[Event]:
         """Whether the fix's course was held by its receiver (GnssAiding.held_course): its velocity, tested

@@ -103,6 +103,8 @@ class Estimate:
     P_diag: np.ndarray      # its covariance's diagonal, the same shape
     origin: tuple[float, float, float]   # lat_deg, lon_deg, alt_m of the local frame's origin
     fix_en: tuple[float, float] | None = None   # the fix's own east, north (m): how far the estimate is from it
+    fix_fused: bool = True  # whether the fix's position was fused (False: excluded by an alarm, the estimate
+                            # held by the other sensors: its distance from the fix is that exclusion's)
 
     def lat_lon(self) -> tuple[float, float]:
         """The estimated position in WGS-84 degrees (computed on demand: it costs ~0.1 ms)."""

@@ -72,28 +72,36 @@ ADJUSTED = {
 class FixGap:
     """How far the estimate stood from each fix (after fusing it, or beside it when the GNSS is
     excluded): on a clean flight, within a few metres; coasting away from the fixes is what this
-    shows."""
+    shows. Kept apart too by whether the fix's position was fused: where an alarm excluded it, the
+    estimate is held by the other sensors on purpose, and its distance from the fixes is the
+    exclusion's."""
 
     FAR_M = 5.0
 
     def __init__(self):
-        self.n = self.far = 0
-        self.max = self.sum = 0.0
+        # all fixes, the fused, the excluded: count, sum and max of the distances, count over FAR_M
+        self.parts = {k: [0, 0.0, 0.0, 0] for k in ("all", "fused", "excluded")}
 
     def add(self, e: Estimate) -> None:
         if e.fix_en is None:
             return
         d = math.hypot(e.east_m - e.fix_en[0], e.north_m - e.fix_en[1])
-        self.n += 1
-        self.sum += d
-        self.max = max(self.max, d)
-        self.far += d > self.FAR_M
+        for key in ("all", "fused" if e.fix_fused else "excluded"):
+            x = self.parts[key]
+            x[0] += 1
+            x[1] += d
+            x[2] = max(x[2], d)
+            x[3] += d > self.FAR_M
+
+    def _of(self, key: str) -> dict:
+        n, total, top, far = self.parts[key]
+        return {"max": round(top, 2), "mean": round(total / max(n, 1), 2),
+                f"share_over_{self.FAR_M:g}": round(far / max(n, 1), 4), "fixes": n}
 
     def summary(self) -> dict:
-        """max and mean (m), and the share of fixes more than FAR_M away."""
-        n = max(self.n, 1)
-        return {"max": round(self.max, 2), "mean": round(self.sum / n, 2),
-                f"share_over_{self.FAR_M:g}": round(self.far / n, 4), "fixes": self.n}
+        """max and mean (m), and the share of fixes more than FAR_M away, over all fixes; and the same of
+        the fixes whose position was fused, and of those an alarm excluded."""
+        return {**self._of("all"), "fused": self._of("fused"), "excluded": self._of("excluded")}
 
 
 class ReportSink(Sink):

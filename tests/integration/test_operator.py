@@ -254,3 +254,26 @@ def test_a_replay_lists_what_it_said_in_order(tmp_path, capsys):
     lines = t.said()
     assert "ALARM gnss_pos north +10 m (GNSS sample 1000)" in lines[0] and "time jumped" in lines[1], lines
     assert len(lines) == LINES + 1 and lines[-1].startswith("... and 2 more"), lines[-1]
+
+
+def test_a_replay_says_apart_how_far_the_estimate_stood_from_the_fixes_an_alarm_excluded(tmp_path, capsys):
+    """A 10 m north step from 25 s to the end of a simulated drive: after its alarm the estimate is held
+    by the IMU and the GNSS velocity, 10 m from the fixes on purpose. The summary says the fused fixes'
+    distance and the excluded ones' apart; the report has both, and they add up to all."""
+    import dataclasses
+    import json
+    from guard_sim import scenario as scenarios
+    from guard_sim.run import run
+    from guard_sim.scenario import Attack
+    sc = dataclasses.replace(scenarios.load("clean"), duration_s=40.0,
+                             attacks=(Attack("step", "gnss_pos", "north", 10.0, 25.0),))
+    tlog = tmp_path / "north.tlog"
+    run(sc, 5, tlog=str(tlog))
+    assert main(["replay", str(tlog), "--report", str(tmp_path / "r.json")]) == 0
+    out = capsys.readouterr().out.splitlines()
+    gap = json.loads((tmp_path / "r.json").read_text())["estimate_to_fix_m"]
+    fused, out_ = gap["fused"], gap["excluded"]
+    assert fused["fixes"] + out_["fixes"] == gap["fixes"] and out_["fixes"] >= 50, gap
+    assert fused["max"] < 3.0 and 7.0 < out_["mean"] < 13.0 and gap["max"] == max(fused["max"], out_["max"]), gap
+    said = [line.strip() for line in out if "whose position an alarm had excluded" in line]
+    assert len(said) == 1 and said[0].startswith(f"at the {fused['fixes']} fixes fused, {fused['mean']:.1f} m"), out
