@@ -51,6 +51,8 @@ SKIPPED = {
     "truncated": "messages cut short (the log's end, or a write the logger did not finish)",
     "garbage_bytes": "bytes between messages that were not a message",
     "unread_bytes": "bytes after the last readable message",
+    "undeclared_type": "DataFlash messages of a type no FMT declared (a corrupt type byte): stepped past to the "
+                       "next message",
     "bad_format": "messages of a format the log defines wrongly",
     "bad_crc": "MAVLink frames with a bad checksum",
     "other_system": "messages of another MAVLink system (--system-id 0 reads every system)",

@@ -187,6 +187,20 @@ def test_a_real_ardupilot_log_replays(real):
     assert report["gnss_samples"] > 300 and report["duration_s"] > 100
 
 
+def test_a_real_log_with_a_corrupt_type_byte_loses_that_message_only(real, tmp_path):
+    """A header a tenth into the log given a type no FMT declares (a corrupt byte on the card): before,
+    DFReader's indexer stopped there and the rest of the flight was lost; now that message alone is."""
+    data = bytearray(real.read_bytes())
+    at = data.index(HEADER, len(data) // 10)
+    declared = {data[i + 3] for i in range(len(data) - 4) if data[i:i + 3] == HEADER + bytes((FMT.type,))}
+    data[at + 2] = next(t for t in range(1, 128) if t not in declared)
+    bad = tmp_path / "corrupt.bin"
+    bad.write_bytes(bytes(data))
+    whole, report = replay(str(real)), replay(str(bad))
+    assert report["skipped"]["undeclared_type"] == 1 and "unread_bytes" not in report["skipped"], report["skipped"]
+    assert report["gnss_samples"] >= whole["gnss_samples"] - 1
+
+
 def test_instances_are_chosen_by_number(real):
     first, _ = samples_of(str(real))
     second, reader = samples_of(str(real), imu=1)
@@ -283,10 +297,11 @@ def test_bad_copies_replay_what_they_can_or_say_why(paper, tmp_path):
         assert report["gnss_samples"] <= whole["gnss_samples"], name
         if name == "cut":
             assert report["skipped"]["truncated"] == 1 and 0 < report["gnss_samples"] < whole["gnss_samples"]
-        if name == "undeclared":
-            assert report["skipped"]["unread_bytes"] > 0 and report["gnss_samples"] > 100
+        if name == "undeclared":            # one corrupt type byte: that message lost, none after it
+            assert report["skipped"]["undeclared_type"] == 1 and "unread_bytes" not in report["skipped"]
+            assert report["gnss_samples"] >= whole["gnss_samples"] - 1, (report["gnss_samples"], whole["gnss_samples"])
         if name == "fmt_length_0":      # DFReader would loop forever on it: refused, GPS is then undeclared
-            assert report["skipped"]["bad_format"] == 1 and report["skipped"]["unread_bytes"] > 0
+            assert report["skipped"]["bad_format"] == 1 and report["skipped"]["undeclared_type"] > 0
 
 
 def test_empty_zero_and_format_only_files(paper, tmp_path):

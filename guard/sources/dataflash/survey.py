@@ -35,11 +35,17 @@ def rate(log: Log, stream: tuple[str, list[int]]) -> float | None:
 
 
 def account(index, skipped, notes: list[str]) -> None:
-    """Count what DFReader could not frame: a cut last message, garbage, a tail it did not read."""
+    """Count what DFReader could not frame: a cut last message, garbage, headers of an undeclared type,
+    a tail it did not read."""
     size = index.data_len
     spans, stop = 0, 0
     for t, offs in enumerate(index.offsets):
-        if not offs or t not in index.formats:
+        if offs and t not in index.formats:         # headers of a type no FMT declared, stepped past
+            skipped["undeclared_type"] += len(offs)
+            spans += 3 * len(offs)
+            stop = max(stop, offs[-1] + 3)
+            continue
+        if not offs:
             continue
         length = index.formats[t].len
         spans += length * len(offs)
