@@ -62,6 +62,7 @@ def _replay(args) -> int:
     if args.report != "-":
         from guard.core.judge import STANDING_GAP_S
         from guard.sinks.report import ADJUSTED, SKIPPED, FixGap
+        from guard.core.aiding.rest import G, WINDOW_S
         alarms = report["alarms"]
         first = (f"first alarm at GNSS sample {alarms[0]['gnss_index']} ({alarms[0]['sensor']} "
                  f"{alarms[0]['channel']})") if alarms else "no alarm"
@@ -75,11 +76,11 @@ def _replay(args) -> int:
         if gap["fixes"]:
             print(f"  the estimate from the fixes: {gap['mean']:.1f} m on average, {gap['max']:.1f} m at most, "
                   f"more than {FixGap.FAR_M:g} m at {100 * gap[f'share_over_{FixGap.FAR_M:g}']:.1f} % of them")
-            if (out := gap["excluded"])["fixes"]:
-                fused = gap["fused"]
-                print(f"    at the {fused['fixes']} fixes fused, {fused['mean']:.1f} m on average and {fused['max']:.1f} m "
-                      f"at most; at the {out['fixes']} whose position an alarm had excluded, {out['mean']:.1f} m and "
-                      f"{out['max']:.1f} m (the estimate held by the other sensors)")
+            fused, out = gap["fused"], gap["excluded"]
+            if out["fixes"]:
+                print(f"    at the {fused['fixes']} fixes fused, {fused['mean']:.1f} m on average and "
+                      f"{fused['max']:.1f} m at most; at the {out['fixes']} whose position an alarm had excluded, "
+                      f"{out['mean']:.1f} m and {out['max']:.1f} m (the estimate held by the other sensors)")
         for line in timeline.said():
             print(f"  {line}")
         for note in report["notes"]:
@@ -91,10 +92,10 @@ def _replay(args) -> int:
         if line := position_said(report["position_wander"]):
             print(f"  {line}")
         if rest := report["accelerometers_at_rest"]:
-            from guard.core.aiding.rest import G, WINDOW_S
+            latest = "" if rest["median_of"] == rest["windows"] else f"the latest {rest['median_of']} of "
             print(f"  the accelerometers at rest read {rest['median_mps2']:.2f} m/s^2 where gravity is {G:.2f} "
-                  f"(the median of {rest['windows']} windows of {WINDOW_S:g} s, {rest['min_mps2']:.2f} to "
-                  f"{rest['max_mps2']:.2f})")
+                  f"(the median of {latest}{rest['windows']} windows of {WINDOW_S:g} s, "
+                  f"{rest['min_mps2']:.2f} to {rest['max_mps2']:.2f})")
         for reason, n in sorted(report["skipped"].items(), key=lambda kv: -kv[1]):
             print(f"  skipped {n} {SKIPPED.get(reason, reason.replace('_', ' '))}")
         for reason, n in sorted(report["adjusted"].items(), key=lambda kv: -kv[1]):

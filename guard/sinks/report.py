@@ -7,7 +7,7 @@ import json
 import math
 import sys
 from collections import Counter
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from guard.core.aiding.gnss import HELD_COURSE_MAX_MPS
@@ -51,8 +51,8 @@ SKIPPED = {
     "truncated": "messages cut short (the log's end, or a write the logger did not finish)",
     "garbage_bytes": "bytes between messages that were not a message",
     "unread_bytes": "bytes after the last readable message",
-    "undeclared_type": "DataFlash messages of a type no FMT declared (a corrupt type byte): stepped past to the "
-                       "next message",
+    "undeclared_type": "DataFlash messages of a type no FMT declared (a corrupt type byte, or a type whose FMT was "
+                       "refused): stepped past to the next message",
     "bad_format": "messages of a format the log defines wrongly",
     "bad_crc": "MAVLink frames with a bad checksum",
     "other_system": "messages of another MAVLink system (--system-id 0 reads every system)",
@@ -71,6 +71,21 @@ ADJUSTED = {
 }
 
 
+@dataclass
+class Distances:
+    """Distances from the estimate to the fixes: how many, their sum and largest, how many were far."""
+    n: int = 0
+    total: float = 0.0
+    top: float = 0.0
+    far: int = 0
+
+    def add(self, d: float, far: bool) -> None:
+        self.n += 1
+        self.total += d
+        self.top = max(self.top, d)
+        self.far += far
+
+
 class FixGap:
     """How far the estimate stood from each fix (after fusing it, or beside it when the GNSS is
     excluded): on a clean flight, within a few metres; coasting away from the fixes is what this
@@ -81,24 +96,20 @@ class FixGap:
     FAR_M = 5.0
 
     def __init__(self):
-        # all fixes, the fused, the excluded: count, sum and max of the distances, count over FAR_M
-        self.parts = {k: [0, 0.0, 0.0, 0] for k in ("all", "fused", "excluded")}
+        self.parts = {k: Distances() for k in ("all", "fused", "excluded")}
 
     def add(self, e: Estimate) -> None:
         if e.fix_en is None:
             return
         d = math.hypot(e.east_m - e.fix_en[0], e.north_m - e.fix_en[1])
         for key in ("all", "fused" if e.fix_fused else "excluded"):
-            x = self.parts[key]
-            x[0] += 1
-            x[1] += d
-            x[2] = max(x[2], d)
-            x[3] += d > self.FAR_M
+            self.parts[key].add(d, d > self.FAR_M)
 
     def _of(self, key: str) -> dict:
-        n, total, top, far = self.parts[key]
-        return {"max": round(top, 2), "mean": round(total / max(n, 1), 2),
-                f"share_over_{self.FAR_M:g}": round(far / max(n, 1), 4), "fixes": n}
+        x = self.parts[key]
+        n = max(x.n, 1)
+        return {"max": round(x.top, 2), "mean": round(x.total / n, 2),
+                f"share_over_{self.FAR_M:g}": round(x.far / n, 4), "fixes": x.n}
 
     def summary(self) -> dict:
         """max and mean (m), and the share of fixes more than FAR_M away, over all fixes; and the same of

@@ -201,6 +201,38 @@ def test_a_real_log_with_a_corrupt_type_byte_loses_that_message_only(real, tmp_p
     assert report["gnss_samples"] >= whole["gnss_samples"] - 1
 
 
+def fmt_offsets(data: bytes) -> dict[int, int]:
+    """The offset of the first FMT declaring each type."""
+    out, at = {}, data.find(HEADER + bytes((FMT.type,)))
+    while at >= 0:
+        out.setdefault(data[at + 3], at)
+        at = data.find(HEADER + bytes((FMT.type,)), at + 1)
+    return out
+
+
+def test_a_corrupt_type_byte_naming_a_type_declared_later_is_not_taken_for_its_message(real, tmp_path):
+    """ArduPilot writes some FMTs at their first use. A header before such an FMT given its type is not
+    one of its messages: dropped and counted; that type's messages after its FMT are all found, and a
+    clean log's index is DFReader's own, offset for offset."""
+    from guard.sources.dataflash.index import open_index
+    from pymavlink import DFReader
+    data = real.read_bytes()
+    declared = fmt_offsets(data)
+    late = max((t for t in declared if t != FMT.type), key=declared.get)
+    at = data.index(HEADER, declared[late] // 2)
+    corrupt = bytearray(data)
+    corrupt[at + 2] = late
+    bad = tmp_path / "late.bin"
+    bad.write_bytes(bytes(corrupt))
+    clean, ours = DFReader.DFReader_binary(str(real)), open_index(str(real))
+    assert ours.offsets == clean.offsets and ours.early == 0
+    damaged = open_index(str(bad))
+    assert damaged.early == 1 and at not in damaged.offsets[late]
+    assert damaged.offsets[late] == ours.offsets[late], (len(damaged.offsets[late]), len(ours.offsets[late]))
+    whole, report = replay(str(real)), replay(str(bad))
+    assert report["skipped"]["undeclared_type"] == 1 and report["gnss_samples"] >= whole["gnss_samples"] - 1
+
+
 def test_instances_are_chosen_by_number(real):
     first, _ = samples_of(str(real))
     second, reader = samples_of(str(real), imu=1)

@@ -54,17 +54,18 @@ class RestCheck:
         self.past = 0                           # windows in a row past TOL_MPS2
         self.said = False                       # an episode is under way (said)
         self._fix: tuple[int, float] | None = None   # (t_us, horizontal speed) of the latest fix with a velocity
-        self.read: deque[float] = deque(maxlen=KEPT)  # |mean f| of the latest windows at rest
+        self.readings: deque[float] = deque(maxlen=KEPT)  # |mean f| of the latest windows at rest
         self.judged = 0                         # windows at rest judged in all
-        self.range: tuple[float, float] | None = None  # the least and greatest |mean f| of them
+        self.extremes: tuple[float, float] | None = None  # the least and greatest |mean f| of them
         self.gap()
 
     def gap(self) -> None:
         """A gap, a reboot, a blow set aside: the window under way is not continuous with what comes."""
         self._start: int | None = None
         self._last: int | None = None
-        # per half: count, sums of f_x, f_y, f_z; and over both, the sums of their squares
-        self._half = [[0, 0.0, 0.0, 0.0], [0, 0.0, 0.0, 0.0]]
+        # the window's first and second half: each [count, sum f_x, sum f_y, sum f_z]; over both, the
+        # sums of their squares
+        self._first, self._second = [0, 0.0, 0.0, 0.0], [0, 0.0, 0.0, 0.0]
         self._sq = [0.0, 0.0, 0.0]
         self._still = True                      # the gyro, and the GNSS, said still throughout
 
@@ -91,7 +92,7 @@ class RestCheck:
         fix = self._fix
         if fix is not None and 0 <= t - fix[0] <= FIX_FRESH_S * 1e6 and fix[1] >= STILL_MPS:
             self._still = False
-        h = self._half[t >= self._start + WINDOW_S * 5e5]
+        h = self._second if t >= self._start + WINDOW_S * 5e5 else self._first
         f = (s.acc_x_mps2, s.acc_y_mps2, s.acc_z_mps2)
         h[0] += 1
         for i in range(3):
@@ -100,21 +101,23 @@ class RestCheck:
         return out
 
     def _check(self, t_us: int) -> list[Notice]:
-        (n1, *s1), (n2, *s2) = self._half
+        (n1, *s1), (n2, *s2) = self._first, self._second
         n = n1 + n2
         if not self._still or n < MIN_SAMPLES or n1 == 0 or n2 == 0:
             return self._not_at_rest()
+        # per axis: mean m = (S1 + S2) / n, spread sd = sqrt(SQ / n - m^2); the halves' means S1/n1 and
+        # S2/n2 differ by their noise alone up to 3 sd sqrt(1/n1 + 1/n2): past that, by STEADY_MPS2 more
         mean = [(a + b) / n for a, b in zip(s1, s2)]
         sd = [math.sqrt(max(self._sq[i] / n - mean[i] ** 2, 0.0)) for i in range(3)]
-        # the halves' means differ by their noise alone up to 3 sigma of it: past that, by STEADY_MPS2 more
         steady = all(abs(a / n1 - b / n2) <= STEADY_MPS2 + 3.0 * d * math.sqrt(1 / n1 + 1 / n2)
                      for a, b, d in zip(s1, s2, sd))
         if max(sd) > QUIET_MPS2 or not steady:
             return self._not_at_rest()
         force = math.sqrt(sum(m * m for m in mean))
-        self.read.append(force)
+        self.readings.append(force)
         self.judged += 1
-        self.range = (min(self.range[0], force), max(self.range[1], force)) if self.range else (force, force)
+        low, high = self.extremes or (force, force)
+        self.extremes = (min(low, force), max(high, force))
         if abs(force - G) <= TOL_MPS2:
             self.past, self.said = 0, False
             return []
@@ -125,20 +128,20 @@ class RestCheck:
         off = force - G
         leak = abs(off) * math.sin(math.radians(20.0))
         return [Notice(t_us, "warning", f"the accelerometers read {force:.2f} m/s^2 at rest over "
-                       f"{SUSTAIN * WINDOW_S:g} s, where gravity is {G:.2f}: {off:+.2f} ({100 * off / G:+.0f} %), "
-                       f"past the {TOL_MPS2:g} ArduPilot's pre-arm check allows between two accelerometers. "
-                       "Their calibration is off (a scale error or an offset: at rest the two look alike), or "
-                       f"data is injected into them; tilted 20 degrees in flight, that leaks {leak:.1f} m/s^2 "
-                       "into the horizontal, which guard's accel and gnss_vel tests read as a bias: calibrate "
-                       "the accelerometers")]
+                       f"{SUSTAIN * WINDOW_S:g} s where g is {G:.2f}: {off:+.2f} ({100 * off / G:+.0f} %), past "
+                       f"the {TOL_MPS2:g} m/s^2 ArduPilot's pre-arm check allows between two accelerometers: "
+                       "miscalibrated (a scale or an offset) or data injected. Tilted 20 deg in flight, that is "
+                       f"{leak:.1f} m/s^2 in the horizontal, an accel and gnss_vel bias to guard's tests: "
+                       "calibrate the accelerometers")]
 
     def summary(self) -> dict | None:
-        """What the windows at rest read (m/s^2): their number, median (of the latest KEPT), least and
-        greatest; None where the vehicle was never judged at rest."""
+        """What the windows at rest read (m/s^2): their number, the median of the latest KEPT (how
+        many: `median_of`), least and greatest; None where the vehicle was never judged at rest."""
         if not self.judged:
             return None
-        return {"windows": self.judged, "median_mps2": round(statistics.median(self.read), 3),
-                "min_mps2": round(self.range[0], 3), "max_mps2": round(self.range[1], 3)}
+        return {"windows": self.judged, "median_mps2": round(statistics.median(self.readings), 3),
+                "median_of": len(self.readings), "min_mps2": round(self.extremes[0], 3),
+                "max_mps2": round(self.extremes[1], 3)}
 
     def _not_at_rest(self) -> list[Notice]:
         self.past = 0

@@ -14,8 +14,9 @@ logs: `TimeMS` ms); all samples are on this one time base. Each part states the 
 Damage, as DFReader meets it (a DataFlash message has no checksum): a cut last message is dropped
 (`skipped["truncated"]`); garbage between messages is skipped up to the next header
 (`garbage_bytes`); a header of a type no FMT declared (a corrupt type byte) stopped DFReader's
-indexer, and the rest of the file was not read: guard's index steps past it to the next header and
-counts it (`undeclared_type`); a tail DFReader still does not read is `unread_bytes`, with a note. Values out of any sensor's range, time stamps beyond
+indexer, and the rest of the file was not read: guard's index steps past it to the next header
+and counts it (`undeclared_type`); a tail DFReader still does not read is `unread_bytes`, with a
+note. Values out of any sensor's range, time stamps beyond
 ~116 days of boot, a GPS status above 8 are corrupt messages (`bad_message`).
 """
 

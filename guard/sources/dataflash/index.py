@@ -49,8 +49,11 @@ class _Formats(dict):
     after it, so one corrupt type byte lost the rest of the log (88 % of a real Erle flight). Taken as
     3 bytes, the indexer steps past it and finds the next header, as it does after any garbage; its
     offsets stay under that type, which no FMT names, and are counted as `undeclared_type` (survey).
-    What this cannot mend: a type id corrupted into one an FMT declares later is framed as 3 bytes
-    from then on, its messages still found at their headers."""
+    A type byte corrupted into one an FMT declares later is dropped once indexed (`_Index.early`), but
+    the indexer keeps the 3 bytes as that type's length: its messages are found at their headers,
+    each body then scanned byte by byte for the next one (about 4 us a byte; a payload's own 0xA3 0x95
+    can then read as a header, as after any garbage). So is every message of a type whose FMT was
+    refused."""
 
     refused = 0
     indexing = False
@@ -100,6 +103,8 @@ class _Index(DFReader.DFReader_binary):
                     getattr(self, part).close()
             raise
 
+    early = 0                       # headers dropped for coming before their type's FMT (corrupt type bytes)
+
     def init_arrays(self, progress_callback=None):
         self.formats = _Formats(self.formats)
         self.formats.indexing = True
@@ -107,6 +112,25 @@ class _Index(DFReader.DFReader_binary):
             super().init_arrays(progress_callback)
         finally:
             self.formats.indexing = False
+        # what UNDECLARED left behind: its struct, cached under the type byte it was met with (DFReader
+        # builds them again as it parses), and its message
+        getattr(self, "unpackers", {}).clear()
+        getattr(self, "messages", {}).pop("UNDECLARED", None)
+        self._drop_before_fmt()
+
+    def _drop_before_fmt(self) -> None:
+        """A corrupt type byte can name a type whose FMT comes later in the log (ArduPilot writes some
+        FMTs at their first use): that header, met before any FMT declared its type, is not one of its
+        messages. Dropped, and counted (`early`)."""
+        first: dict[int, int] = {}
+        for o in self.offsets[FMT_TYPE]:
+            if o + 3 < self.data_len:
+                first.setdefault(self.data_map[o + 3], o)
+        for t, offs in enumerate(self.offsets):
+            if offs and t != FMT_TYPE and t in first and offs[0] < first[t]:
+                kept = [o for o in offs if o > first[t]]
+                self.early += len(offs) - len(kept)
+                self.offsets[t] = kept
 
     def init_arrays_fast(self, progress_callback=None):
         self.init_arrays(progress_callback)

@@ -58,14 +58,16 @@ def account(index, skipped, notes: list[str]) -> None:
         skipped["garbage_bytes"] += garbage
     if index.formats.refused:
         skipped["bad_format"] += index.formats.refused
+    if index.early:
+        skipped["undeclared_type"] += index.early
     tail, data = size - stop, index.data_map
     fmt = index.formats.get(data[stop + 2]) if tail >= 3 and data[stop:stop + 2] == HEAD else None
     if 0 < tail < 3 and HEAD.startswith(data[stop:size]) or fmt is not None and tail < fmt.len:
         skipped["truncated"] += 1           # the last message, cut in its header or right after it
     elif tail >= 3 and data[stop:stop + 2] == HEAD:
         skipped["unread_bytes"] += tail
-        notes.append(f"reading stopped at byte {stop} of {size}: a message type no FMT declared "
-                     f"(corrupt data); the last {tail} bytes are not read")
+        notes.append(f"reading stopped at byte {stop} of {size} (corrupt data DFReader could not frame); "
+                     f"the last {tail} bytes are not read")
     elif tail > 0:
         skipped["garbage_bytes"] += tail
 
