@@ -223,23 +223,29 @@ def test_a_replay_says_how_far_the_estimate_stood_from_the_fixes_and_what_it_ski
     assert not any("_" in line for line in skipped), skipped          # words, not the report's keys
 
 
-def test_a_replay_lists_what_it_said_in_order(tmp_path, capsys):
-    """The summary lists each alarm (sensor, axis, offset, GNSS sample), clearance and WARNING by
-    the log's clock, in the order the core said them: a 10 m north step on a simulated drive, its
-    alarm at the report's sample; past LINES, how many more. A reboot's time goes back: the order is
-    still the core's."""
+def north_step(tmp_path, seed: int):
+    """A simulated 40 s drive, its GNSS position stepped 10 m north from 25 s to the end, as a tlog."""
     import dataclasses
-    import json
-    from guard.model.events import Alarm, Notice
-    from guard.model.sensors import Sensor
-    from guard.sinks.timeline import LINES, Timeline
     from guard_sim import scenario as scenarios
     from guard_sim.run import run
     from guard_sim.scenario import Attack
     sc = dataclasses.replace(scenarios.load("clean"), duration_s=40.0,
                              attacks=(Attack("step", "gnss_pos", "north", 10.0, 25.0),))
     tlog = tmp_path / "north.tlog"
-    run(sc, 4, tlog=str(tlog))
+    run(sc, seed, tlog=str(tlog))
+    return tlog
+
+
+def test_a_replay_lists_what_it_said_in_order(tmp_path, capsys):
+    """The summary lists each alarm (sensor, axis, offset, GNSS sample), clearance and WARNING by
+    the log's clock, in the order the core said them: a 10 m north step on a simulated drive, its
+    alarm at the report's sample; past LINES, how many more. A reboot's time goes back: the order is
+    still the core's."""
+    import json
+    from guard.model.events import Alarm, Notice
+    from guard.model.sensors import Sensor
+    from guard.sinks.timeline import LINES, Timeline
+    tlog = north_step(tmp_path, 4)
     assert main(["replay", str(tlog), "--report", str(tmp_path / "r.json")]) == 0
     out = capsys.readouterr().out.splitlines()
     report = json.loads((tmp_path / "r.json").read_text())
@@ -260,15 +266,8 @@ def test_a_replay_says_apart_how_far_the_estimate_stood_from_the_fixes_an_alarm_
     """A 10 m north step from 25 s to the end of a simulated drive: after its alarm the estimate is held
     by the IMU and the GNSS velocity, 10 m from the fixes on purpose. The summary says the fused fixes'
     distance and the excluded ones' apart; the report has both, and they add up to all."""
-    import dataclasses
     import json
-    from guard_sim import scenario as scenarios
-    from guard_sim.run import run
-    from guard_sim.scenario import Attack
-    sc = dataclasses.replace(scenarios.load("clean"), duration_s=40.0,
-                             attacks=(Attack("step", "gnss_pos", "north", 10.0, 25.0),))
-    tlog = tmp_path / "north.tlog"
-    run(sc, 5, tlog=str(tlog))
+    tlog = north_step(tmp_path, 5)
     assert main(["replay", str(tlog), "--report", str(tmp_path / "r.json")]) == 0
     out = capsys.readouterr().out.splitlines()
     gap = json.loads((tmp_path / "r.json").read_text())["estimate_to_fix_m"]

@@ -953,6 +953,18 @@ def test_a_rough_vehicle_s_wandering_sensors_are_said_once_on_the_link(caplog, m
     assert receiver.done and receiver.checked > position_wander.SAY_RATIO and not len(receiver.rows)
 
 
+def said_on_the_link(edit, phrase: str) -> tuple[list[tuple[str, int]], list]:
+    """The paper scenario's first 30 s (its attack starts at 40 s), each message changed by `edit`,
+    through the daemon in process: the (text, severity) of the STATUSTEXTs that hold `phrase`, and
+    all it said."""
+    enc, items = scenario_messages("paper", until_s=30, edit=edit)
+    with in_process() as g:
+        peer = g.connect()
+        feed(peer, frames(enc, items), g.d)
+        got = joined(drain(peer))
+    return [(t, sev) for t, sev in got if phrase in t], got
+
+
 def test_accelerometers_that_stop_reading_the_vehicle_are_said_on_the_link():
     """RAW_IMU's z axis reads 600 mG less from 10 s (a clipped or injected vertical axis): the
     ground station is told, once, at WARNING, that the accelerometers do not read the vehicle; the
@@ -961,13 +973,8 @@ def test_accelerometers_that_stop_reading_the_vehicle_are_said_on_the_link():
         if msg.get_type() == "RAW_IMU" and t_us >= 10e6:
             msg.zacc += 600                 # mG: z is down, so the vehicle seems to fall at 5.9 m/s^2
     for edit, said in ((clipped, 1), (None, 0)):
-        enc, items = scenario_messages("paper", until_s=30, edit=edit)    # the attack starts at 40 s
-        with in_process() as g:
-            peer = g.connect()
-            feed(peer, frames(enc, items), g.d)
-            got = drain(peer)
-        lines = [(t, sev) for t, sev in joined(got) if "upward over 4 s" in t]
-        assert len(lines) == said, joined(got)
+        lines, got = said_on_the_link(edit, "upward over 4 s")
+        assert len(lines) == said, got
         assert all(t.startswith("GUARD the accelerometers read the vehicle accelerating -5.") and sev == WARNING
                    for t, sev in lines), lines
 
@@ -988,12 +995,7 @@ def test_accelerometers_that_misread_gravity_at_rest_are_said_on_the_link():
             elif msg.get_type() == "RAW_IMU":
                 msg.xacc, msg.yacc, msg.zacc = 0, 0, z_mg
                 msg.xgyro = msg.ygyro = msg.zgyro = 0
-        enc, items = scenario_messages("paper", until_s=30, edit=parked)
-        with in_process() as g:
-            peer = g.connect()
-            feed(peer, frames(enc, items), g.d)
-            got = drain(peer)
-        lines = [(t, sev) for t, sev in joined(got) if "at rest over" in t]
-        assert len(lines) == said, joined(got)
+        lines, got = said_on_the_link(parked, "at rest over")
+        assert len(lines) == said, got
         assert all(t.startswith("GUARD the accelerometers read 8.34 m/s^2 at rest") and sev == WARNING
                    for t, sev in lines), lines
