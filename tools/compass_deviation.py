@@ -87,7 +87,7 @@ def _dataflash_throttle(path: str) -> tuple[np.ndarray | None, str]:
 
 
 def _ulog_throttle(path: str) -> tuple[np.ndarray | None, str]:
-    ulog, _ = load(path, ["vehicle_thrust_setpoint", "actuator_controls_0", "vehicle_status"])
+    ulog, _, _ = load(path, ["vehicle_thrust_setpoint", "actuator_controls_0", "vehicle_status"])
     found = {d.name: d.data for d in ulog.data_list if d.multi_id == 0}
     if "vehicle_thrust_setpoint" in found and "xyz[2]" in found["vehicle_thrust_setpoint"]:
         d = found["vehicle_thrust_setpoint"]

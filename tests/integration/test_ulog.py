@@ -30,8 +30,8 @@ from guard_sim.ulog import to_ulog
 REAL = Path(__file__).resolve().parents[3] / "shared" / "data" / "real" / "px4_vtol_cubeorange_short.ulg"
 START_S = 20.0          # tools/eval.py's cases start at 30 s; 20 s leaves the filter settled and the run short
 F32 = dict(rtol=2e-7, atol=1e-7)       # float32's precision on the values a .ulg stores as float
-LOSS = {"truncated", "ulog_corrupt", "ulog_bad_time", "imu_out_of_range", "imu_invalid", "mag_out_of_range",
-        "gnss_bad_position", "gnss_bad_velocity", "attitude_non_finite"}
+LOSS = {"truncated", "ulog_corrupt", "garbage_bytes", "ulog_bad_time", "imu_out_of_range", "imu_invalid",
+        "mag_out_of_range", "gnss_bad_position", "gnss_bad_velocity", "attitude_non_finite"}
 
 
 def read_all(path, **options):

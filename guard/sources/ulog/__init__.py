@@ -2,6 +2,8 @@
 
 Time base: every record's `timestamp`, microseconds since the autopilot booted (one clock for all
 topics, PX4's hrt). Each part states the units and frames it reads (from PX4's msg/*.msg):
+- `framing`: the file's messages walked before pyulog reads it; spans corrupt bytes left unframed
+  are skipped (pyulog alone would lose its place and the messages after them).
 - `load`: pyulog's reading of the file, what it prints caught and logged, a cut file noticed.
 - `streams`: each topic's records as columns, checked, and the samples made from them (GNSS, IMU
   with the latest magnetometer, attitude, vehicle type).

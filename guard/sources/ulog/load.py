@@ -1,18 +1,23 @@
 """pyulog's reading of a ULog file: the topics guard uses, and where pyulog stopped short.
 
-pyulog reads the whole file at once and prints what it finds wrong on stdout: that is caught and
+The file's framing is walked first (guard.sources.ulog.framing): where corrupt bytes broke it,
+pyulog reads the file without the spans that could not be framed, so that it does not lose the
+messages after them. pyulog reads the whole file at once and prints what it finds wrong on stdout: that is caught and
 logged (the first lines as warnings, the rest counted). It stops silently at a cut message; the
 file it reads notices (its last read came up short) and says where.
 """
 
 from __future__ import annotations
 
+import io
 import logging
+import mmap
 
 from pyulog import ULog
 from pyulog.exceptions import ULogException
 
 from guard.errors import SourceError
+from guard.sources.ulog.framing import Walk, mend
 from guard.sources.logs_common import printed
 
 log = logging.getLogger(__name__)
@@ -62,15 +67,27 @@ class _TrackedFile:
         """pyulog closes its file when done; the reader closes its own."""
 
 
-def load(path: str, topics: list[str] | None = None) -> tuple[ULog, int | None]:
-    """pyulog's reading of the topics guard uses (or of `topics`), and the offset where it stopped short
-    (None: at the end)."""
+def _mended(f) -> tuple[io.BytesIO | None, Walk]:
+    """The file without the spans its framing's walk skipped (None where it skipped none), and the walk."""
+    try:
+        view = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+    except (ValueError, OSError):       # an empty file (or one that cannot be mapped): pyulog says why
+        return None, Walk()
+    with view:
+        data, walk = mend(view)
+    return (None if data is None else io.BytesIO(data)), walk
+
+
+def load(path: str, topics: list[str] | None = None) -> tuple[ULog, int | None, Walk]:
+    """pyulog's reading of the topics guard uses (or of `topics`), the offset where it stopped short
+    (None: at the end), and the walk."""
     try:
         f = open(path, "rb")
     except OSError as e:
         raise SourceError(f"{path}: cannot open: {e.strerror}") from None
     with f, printed() as said:
-        tracked = _TrackedFile(f)
+        mended, walk = _mended(f)
+        tracked = _TrackedFile(f if mended is None else mended)
         try:
             ulog = ULog(tracked, message_name_filter_list=TOPICS if topics is None else topics)
         except ULogException as e:
@@ -83,4 +100,5 @@ def load(path: str, topics: list[str] | None = None) -> tuple[ULog, int | None]:
         log.warning("%s: pyulog: %s", path, line)
     if said.lines > len(said.first):
         log.warning("%s: pyulog: %d more lines like these", path, said.lines - len(said.first))
-    return ulog, tracked.cut_at
+    cut_at = tracked.cut_at if tracked.cut_at is None or mended is None else walk.in_file(tracked.cut_at)
+    return ulog, cut_at, walk

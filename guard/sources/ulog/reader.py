@@ -27,9 +27,9 @@ class UlogReader(LogSource):
         self.path = path
         self.rates_hz: dict[str, float] = {}    # each stream read: its mean rate (what `notes` says)
         self.size = os.path.getsize(path) if os.path.isfile(path) else 0
-        ulog, cut_at = load(path)
+        ulog, cut_at, walk = load(path)
         self.position = self.size           # pyulog has read the whole file
-        survey.account(ulog, cut_at, self.size, self.skipped, self.notes)
+        survey.account(ulog, cut_at, walk, self.size, self.skipped, self.notes)
         sets = {(d.name, d.multi_id): d for d in ulog.data_list if "timestamp" in d.data}
         for (name, _), data in sets.items():
             self.messages[name] += len(data.data["timestamp"])

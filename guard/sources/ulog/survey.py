@@ -12,6 +12,7 @@ import numpy as np
 from pyulog import ULog
 
 from guard.sources.clock import gnss_time_clock
+from guard.sources.ulog.framing import Walk
 from guard.sources.ulog.load import GPS_TOPICS
 
 
@@ -26,11 +27,17 @@ def _hz(t: np.ndarray) -> str:
     return f"{hz:.0f} Hz" if hz >= 10 else f"{hz:.1f} Hz"
 
 
-def account(ulog: ULog, cut_at: int | None, size: int, skipped, notes: list[str]) -> None:
-    """What pyulog says it lost, in `skipped`, and what the log is, in `notes`."""
+def account(ulog: ULog, cut_at: int | None, walk: Walk, size: int, skipped, notes: list[str]) -> None:
+    """What the framing's walk skipped and pyulog says it lost, in `skipped`, and what the log is, in
+    `notes`."""
     info = ulog.msg_info_dict
     what = " ".join(str(info[k]) for k in ("sys_name", "ver_hw") if k in info)
     notes.append(f"PX4 ULog{': ' + what if what else ''}")
+    if walk.spans:
+        skipped["garbage_bytes"] += walk.skipped_bytes
+        first = walk.spans[0][0]
+        notes.append(f"{len(walk.spans)} corrupt span(s) of the file, {walk.skipped_bytes} bytes (the first at byte "
+                     f"{first}), could not be framed as messages: skipped, the messages after them read")
     if ulog.file_corruption:
         skipped["ulog_corrupt"] += 1
         notes.append("pyulog found corrupt bytes: what it could not parse is lost")

@@ -1,0 +1,204 @@
+"""A ULog's message framing, walked before pyulog reads it, and mended where corrupt bytes broke it.
+
+A ULog is a 16-byte header, then messages: a uint16 size, a type byte ('F', 'A', 'D', ...), then
+`size` bytes. One corrupt size or type byte breaks the chain: pyulog then reads the next header from
+the middle of a message and hops on by whatever sizes it finds there, until a sync message (which
+older PX4 logs do not write) or chance puts it back on a boundary. One flipped byte in a public log
+(Auterion's esc_status_log) cost it 31 of its 179 fixes.
+
+`walk` follows the chain and checks each message against what the log itself has shown:
+- its type is one ULog defines, its size is not 0 and it ends inside the file;
+- a data message ('D') names a topic added before ('A'), and has the size its topic's messages had
+  before (a topic's messages are one struct: every clean public ULog read here keeps one size per
+  topic);
+- any other message has its type's shape: a key or a name in printable ASCII where it has one, a
+  log level '0' to '7' where it has one, a sync message's magic bytes, a dropout's or a removal's 2
+  bytes, flag bits only first (random bytes with a long size would otherwise land the walk on a
+  boundary far past the damage and lose what lies between);
+- the next message's header looks like one too (the check that catches a corrupt size).
+A message that fails is where the chain broke. The walk looks on from the byte after it for the
+first place where CHAIN messages in a row pass, and skips to there: the corrupt span is lost (the
+message that broke and what the walk could not frame), and the rest is read. A size that runs past
+the file's end, with no chain after it, is the file's cut end: left for pyulog to stop at.
+
+`mend` gives pyulog the file without the spans (None where nothing was skipped: the file as it is).
+A file with data appended after the log (its flag bits give offsets into the file) is not mended:
+removing bytes would move those offsets.
+"""
+
+from __future__ import annotations
+
+import re
+import struct
+from dataclasses import dataclass, field
+
+HEADER = 16                     # bytes of the file header before the first message
+TYPES = frozenset(b"BFIMPQARDLCOS")     # the message types ULog defines
+CHAIN = 4                       # messages in a row that must pass for the walk to take up again
+_HEAD = struct.Struct("<HB")    # a message's size and type
+_U16 = struct.Struct("<H")
+_ANY_TYPE = re.compile(b"[" + bytes(sorted(TYPES)) + b"]")
+_PRINTABLE = re.compile(rb"[\x20-\x7e]+")
+_LEVELS = frozenset(b"01234567")
+SYNC = bytes([0x2F, 0x73, 0x13, 0x20, 0x25, 0x0C, 0xBB, 0x12])
+_A, _D, _B = ord("A"), ord("D"), ord("B")
+_KEYED = {ord("I"): 0, ord("P"): 0, ord("M"): 1, ord("Q"): 1}     # where the key's length byte sits
+
+
+def _shaped(buf, p: int, size: int, kind: int) -> bool:
+    """Whether the `size` bytes after a header of type `kind` (not data) at p have that type's shape."""
+    body = p + 3
+    if kind in _KEYED:
+        at = body + _KEYED[kind]
+        if at >= body + size:
+            return False
+        n = buf[at]
+        return 0 < n < body + size - at and _PRINTABLE.fullmatch(buf[at + 1:at + 1 + n]) is not None
+    if kind == _A:
+        return size > 3 and _PRINTABLE.fullmatch(buf[body + 3:body + size]) is not None
+    if kind in (ord("L"), ord("C")):
+        return size > 9 and buf[body] in _LEVELS
+    if kind == ord("S"):
+        return size == len(SYNC) and buf[body:body + size] == SYNC
+    if kind in (ord("O"), ord("R")):
+        return size == 2
+    if kind == ord("F"):
+        return _PRINTABLE.fullmatch(buf[body:body + size]) is not None and b":" in buf[body:body + size]
+    return p == HEADER      # flag bits: the first message only
+
+
+@dataclass
+class Walk:
+    """What `walk` found: the spans (start, end) of the file's bytes that could not be framed."""
+    spans: list[tuple[int, int]] = field(default_factory=list)
+    messages: int = 0           # messages framed
+    appended: bool = False      # the file has data appended (its flag bits say so): not walked
+
+    @property
+    def skipped_bytes(self) -> int:
+        return sum(b - a for a, b in self.spans)
+
+    def in_file(self, offset: int) -> int:
+        """The file's offset of `offset` in the file without the spans (`mend`'s)."""
+        for a, b in self.spans:
+            if a <= offset:
+                offset += b - a
+        return offset
+
+
+class _Chain:
+    """The checks, with the topics ('A') and their data messages' sizes learnt as the walk goes."""
+
+    def __init__(self, buf):
+        self.buf, self.n = buf, len(buf)
+        self.topics: set[int] = set()
+        self.sizes: dict[int, int] = {}
+
+    def head(self, p: int) -> tuple[int, int] | None:
+        """(size, type) of a message that may start at p: None if it cannot (a type ULog does not
+        define, size 0, a data message of a topic not added, another message not of its type's shape
+        or past the file's end)."""
+        if p + 3 > self.n:
+            return None
+        size, kind = _HEAD.unpack_from(self.buf, p)
+        if kind not in TYPES or size == 0:
+            return None
+        if kind == _D:
+            if size < 2 or p + 5 > self.n:
+                return None
+            topic = _U16.unpack_from(self.buf, p + 3)[0]
+            if topic not in self.topics:
+                return None
+        elif p + 3 + size > self.n or not _shaped(self.buf, p, size, kind):
+            return None
+        return size, kind
+
+    def whole(self, p: int) -> int | None:
+        """Where the next message starts if one starts at p, ends inside the file and, being a data
+        message, has its topic's size; else None."""
+        h = self.head(p)
+        if h is None:
+            return None
+        size, kind = h
+        end = p + 3 + size
+        if end > self.n:
+            return None
+        if kind == _D and self.sizes.get(_U16.unpack_from(self.buf, p + 3)[0], size) != size:
+            return None
+        return end
+
+    def holds(self, q: int) -> bool:
+        """CHAIN whole messages in a row from q (or whole ones up to the file's end)."""
+        for _ in range(CHAIN):
+            if q == self.n:
+                return True
+            q = self.whole(q)
+            if q is None:
+                return False
+        return True
+
+    def take(self, p: int, end: int) -> None:
+        """The message at p is whole: learn the topic it adds, or its topic's size once it is framed."""
+        kind = self.buf[p + 2]
+        if kind == _A and end - p >= 6:
+            self.topics.add(_U16.unpack_from(self.buf, p + 4)[0])
+        elif kind == _D:
+            self.sizes.setdefault(_U16.unpack_from(self.buf, p + 3)[0], end - p - 3)
+
+
+def _appended(buf) -> bool:
+    """Whether the file's first message is flag bits saying data is appended (incompat bit 0)."""
+    if len(buf) < HEADER + 3 + 9:
+        return False
+    size, kind = _HEAD.unpack_from(buf, HEADER)
+    return kind == _B and size >= 16 and bool(buf[HEADER + 3 + 8] & 1)
+
+
+def walk(buf) -> Walk:
+    """The framing of the ULog in `buf` (bytes, or a memory map), from its first message on."""
+    out = Walk(appended=_appended(buf))
+    if out.appended:
+        return out
+    chain, n, p = _Chain(buf), len(buf), HEADER
+    while p + 3 <= n:
+        end = chain.whole(p)
+        if end is not None:
+            chain.take(p, end)      # a topic added here may be the next message's
+        if end is not None and (end == n or chain.head(end) is not None):
+            out.messages += 1
+            p = end
+            continue
+        q = _resume(chain, p + 1)
+        if q is None:
+            break           # nothing framed after p: the file's cut end (or all corrupt), pyulog's to stop at
+        out.spans.append((p, q))
+        p = q
+    return out
+
+
+def _resume(chain: _Chain, p: int) -> int | None:
+    """The first place from p where CHAIN messages in a row pass; None if none does."""
+    buf, n = chain.buf, chain.n
+    while True:
+        m = _ANY_TYPE.search(buf, p + 2)
+        if m is None:
+            return None
+        q = m.start() - 2
+        if q + 3 > n:
+            return None
+        if chain.holds(q):
+            return q
+        p = q + 1
+
+
+def mend(buf) -> tuple[bytes | None, Walk]:
+    """The file without the spans `walk` could not frame (None: nothing to skip), and the walk."""
+    w = walk(buf)
+    if not w.spans:
+        return None, w
+    parts, at = [], 0
+    for a, b in w.spans:
+        parts.append(buf[at:a])
+        at = b
+    parts.append(buf[at:])
+    return b"".join(parts), w

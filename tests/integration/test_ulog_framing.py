@@ -1,0 +1,137 @@
+"""A ULog whose framing corrupt bytes broke loses only the messages the damage touched
+(guard.sources.ulog.framing): on the real PX4 log and the simulator's paper run written as ULog,
+one corrupt size or type byte, or a hole of random bytes, at several places each."""
+
+from __future__ import annotations
+
+import dataclasses
+import random
+import struct
+from pathlib import Path
+
+import pytest
+from pyulog import ULog
+
+from guard.model.samples import GnssFix, ImuSample
+from guard.sources import open_log
+from guard.sources.ulog.framing import walk
+from guard.sources.ulog.load import GPS_TOPICS
+from guard_sim import scenario
+from guard_sim.run import run
+
+REAL = Path(__file__).resolve().parents[3] / "shared" / "data" / "real" / "px4_vtol_cubeorange_short.ulg"
+GNSS = set(GPS_TOPICS)
+SEEDS = range(4)
+
+
+@pytest.fixture(scope="module")
+def logs(tmp_path_factory):
+    """The paper run (40 s) as ULog, and the real PX4 log where it is here."""
+    d = tmp_path_factory.mktemp("framing")
+    sc = dataclasses.replace(scenario.load("paper"), duration_s=40.0)
+    run(sc, 1, tlog=str(d / "paper.tlog"), ulg=str(d / "paper.ulg"))
+    out = {"sim": d / "paper.ulg"}
+    if REAL.is_file():
+        out["real"] = REAL
+    return out
+
+
+def messages(data: bytes) -> tuple[list[tuple[int, int, str | None]], dict[str, int]]:
+    """The clean file's messages as (offset, size, topic of a data message), and each topic's id."""
+    out, ids, names, pos = [], {}, {}, 16
+    while pos + 3 <= len(data):
+        size, kind = struct.unpack_from("<HB", data, pos)
+        if kind == ord("A"):
+            msg_id = struct.unpack_from("<H", data, pos + 4)[0]
+            names[msg_id] = data[pos + 6:pos + 3 + size].decode()
+            ids.setdefault(names[msg_id], msg_id)
+        topic = names.get(struct.unpack_from("<H", data, pos + 3)[0]) if kind == ord("D") else None
+        out.append((pos, size, topic))
+        pos += 3 + size
+    return out, ids
+
+
+def count(path: Path) -> tuple[int, int, dict]:
+    """GNSS fixes and IMU samples guard reads from `path`, and what it skipped."""
+    with open_log(str(path)) as reader:
+        samples = list(reader.samples())
+        return (sum(isinstance(s, GnssFix) for s in samples), sum(isinstance(s, ImuSample) for s in samples),
+                dict(reader.skipped))
+
+
+def pyulog_fixes(path: Path) -> int:
+    """The GNSS fixes pyulog reads from `path` by itself."""
+    ulog = ULog(str(path), message_name_filter_list=list(GNSS))
+    return sum(len(d.data["timestamp"]) for d in ulog.data_list if d.name in GNSS and d.multi_id == 0)
+
+
+def test_clean_logs_frame_whole(logs):
+    for origin, path in logs.items():
+        data = path.read_bytes()
+        w = walk(data)
+        assert w.spans == [] and not w.appended, origin
+        assert w.messages == len(messages(data)[0]), origin
+
+
+def damaged(data: bytes, seed: int, how: str) -> tuple[bytes, tuple[int, int]]:
+    """`data` with one GNSS data message's size or type byte corrupted, or a hole of random bytes
+    over a few messages, in the middle half of the file; and the span of bytes damaged."""
+    rng = random.Random(seed)
+    msgs, _ = messages(data)
+    fixes = [m for m in msgs[len(msgs) // 4:3 * len(msgs) // 4] if m[2] in GNSS]
+    pos, size, _ = rng.choice(fixes)
+    out = bytearray(data)
+    if how == "size":
+        struct.pack_into("<H", out, pos, size + rng.choice([-7, 1, 13, 200, 3000]))
+        return bytes(out), (pos, pos + 3 + size)
+    if how == "type":
+        out[pos + 2] = rng.choice([0, 0x7F, 0xFF, ord("x")])
+        return bytes(out), (pos, pos + 3 + size)
+    n = rng.randrange(200, 600)
+    out[pos:pos + n] = bytes(rng.randrange(256) for _ in range(n))
+    return bytes(out), (pos, pos + n)
+
+
+@pytest.mark.parametrize("how", ["size", "type", "hole"])
+def test_a_broken_chain_loses_only_what_the_damage_touched(logs, tmp_path, how):
+    hurt_pyulog = 0
+    for origin, path in logs.items():
+        data = path.read_bytes()
+        clean_fixes, clean_imu, _ = count(path)
+        msgs, _ = messages(data)
+        for seed in SEEDS:
+            bad, (a, b) = damaged(data, seed, how)
+            copy = tmp_path / f"{origin}-{how}-{seed}.ulg"
+            copy.write_bytes(bad)
+            touched = [m for m in msgs if m[0] < b and m[0] + 3 + m[1] > a]
+            fixes, imu, skipped = count(copy)
+            # the damaged messages, and at most the one after them whose header the walk could not trust
+            lost_fixes = sum(m[2] in GNSS for m in touched) + 1
+            lost_imu = sum(m[2] == "sensor_combined" for m in touched) + 1
+            assert clean_fixes - lost_fixes <= fixes <= clean_fixes, (origin, seed)
+            assert clean_imu - lost_imu <= imu <= clean_imu, (origin, seed)
+            assert skipped.get("garbage_bytes", 0) >= 3, (origin, seed, skipped)
+            hurt_pyulog += pyulog_fixes(copy) < clean_fixes - lost_fixes
+    if how == "size":
+        # the damage matters: read by pyulog alone, most of these copies lose fixes beyond it
+        assert hurt_pyulog >= len(logs) * len(SEEDS) // 2
+
+
+def test_the_skip_is_said(logs, tmp_path):
+    data = logs["sim"].read_bytes()
+    bad, (a, _) = damaged(data, 0, "size")
+    copy = tmp_path / "said.ulg"
+    copy.write_bytes(bad)
+    with open_log(str(copy)) as reader:
+        list(reader.samples())
+        said = [n for n in reader.notes if "could not be framed" in n]
+    assert len(said) == 1 and f"the first at byte {a})" in said[0]
+
+
+def test_a_file_with_data_appended_is_not_walked(logs):
+    data = bytearray(logs["sim"].read_bytes())
+    if data[18] != ord("B"):
+        pytest.skip("the simulator's ULog starts without flag bits")
+    data[16 + 3 + 8] |= 1
+    w = walk(bytes(data))
+    assert w.appended and w.spans == [] and w.messages == 0
