@@ -18,89 +18,13 @@ EX_CONFIG = 78     # sysexits' configuration error: the systemd unit does not re
 
 
 def _replay(args) -> int:
-    from guard.config import load
-    from guard.runtime.replay import replay, truth_beside, write_report
-    from guard.sinks.plot import Trace
-    cfg = load(args.config)
     from dataclasses import replace
+    from guard.config import load
+    from guard.runtime.replay_command import replay_log
+    cfg = load(args.config)
     if args.detector:
         cfg = replace(cfg, monitor=replace(cfg.monitor, detector=replace(cfg.monitor.detector, name=args.detector)))
-    cfg = _with_system_id(cfg, args.system_id)
-    from guard.runtime.agreement import Agreement, said as wander_said
-    from guard.runtime.deviation import Headings, compass_fits, said
-    from guard.runtime.position_wander import PositionWander, said as position_said
-    from guard.sinks.timeline import Timeline
-    headings = Headings(cfg=cfg.monitor)    # the compass against the gyro over the whole log
-    timeline = Timeline()                   # what the core said, in order
-    agreement = Agreement()                 # the levelled accelerometers against the GNSS velocity
-    position = PositionWander(cfg.monitor.filter)   # the receiver's position against its own velocity
-    listeners = [headings, timeline, agreement, position]
-    trace = Trace() if args.plot else None
-    if trace:
-        listeners.append(trace)
-    log = None
-    if args.mcap:
-        from guard.sinks.mcap import McapLog
-        from guard.config import dump
-        log = McapLog(args.mcap, metadata={"config": cfg.source_text, "config_in_effect": dump(cfg),
-                                           "source": args.file})
-        listeners.append(log)
-    try:
-        report = replay(args.file, cfg, listeners=listeners, progress=args.report != "-", imu=args.imu, gnss=args.gnss)
-    finally:
-        if log:
-            log.close()
-    iron, before, first_s = compass_fits(headings, report)
-    report["compass_deviation"] = {**iron, **({"before_first_alarm": before} if before else {})}
-    report["accelerometer_wander"] = agreement.measure()
-    report["position_wander"] = position.measure()
-    if args.report:
-        write_report(report, args.report)
-    if args.plot:
-        from guard.sinks.plot import plot
-        plot(trace, report, args.plot, truth_beside(args.file))
-    if args.report != "-":
-        from guard.core.judge import STANDING_GAP_S
-        from guard.sinks.report import ADJUSTED, SKIPPED, FixGap
-        from guard.core.aiding.rest import G, WINDOW_S
-        alarms = report["alarms"]
-        first = (f"first alarm at GNSS sample {alarms[0]['gnss_index']} ({alarms[0]['sensor']} "
-                 f"{alarms[0]['channel']})") if alarms else "no alarm"
-        print(f"{args.file}: {report['duration_s']:.1f} s, {report['gnss_samples']} GNSS samples, "
-              f"{len(alarms)} alarm(s), {first}")
-        standing = sum(1 for a in alarms if a["standing"])
-        if standing:
-            print(f"  {standing} of the alarms were a standing alarm going on (its sensor re-anchored on and "
-                  f"alarming again within {STANDING_GAP_S:g} s)")
-        gap = report["estimate_to_fix_m"]
-        if gap["fixes"]:
-            print(f"  the estimate from the fixes: {gap['mean']:.1f} m on average, {gap['max']:.1f} m at most, "
-                  f"more than {FixGap.FAR_M:g} m at {100 * gap[f'share_over_{FixGap.FAR_M:g}']:.1f} % of them")
-            fused, out = gap["fused"], gap["excluded"]
-            if out["fixes"]:
-                print(f"    at the {fused['fixes']} fixes fused, {fused['mean']:.1f} m on average and "
-                      f"{fused['max']:.1f} m at most; at the {out['fixes']} whose position an alarm had excluded, "
-                      f"{out['mean']:.1f} m and {out['max']:.1f} m (the estimate held by the other sensors)")
-        for line in timeline.said():
-            print(f"  {line}")
-        for note in report["notes"]:
-            print(f"  {note}")
-        if line := said(iron, before, first_s):
-            print(f"  {line}")
-        if line := wander_said(report["accelerometer_wander"]):
-            print(f"  {line}")
-        if line := position_said(report["position_wander"]):
-            print(f"  {line}")
-        if rest := report["accelerometers_at_rest"]:
-            latest = "" if rest["median_of"] == rest["windows"] else f"the latest {rest['median_of']} of "
-            print(f"  the accelerometers at rest read {rest['median_mps2']:.2f} m/s^2 where gravity is {G:.2f} "
-                  f"(the median of {latest}{rest['windows']} windows of {WINDOW_S:g} s, "
-                  f"{rest['min_mps2']:.2f} to {rest['max_mps2']:.2f})")
-        for reason, n in sorted(report["skipped"].items(), key=lambda kv: -kv[1]):
-            print(f"  skipped {n} {SKIPPED.get(reason, reason.replace('_', ' '))}")
-        for reason, n in sorted(report["adjusted"].items(), key=lambda kv: -kv[1]):
-            print(f"  used {n} {ADJUSTED.get(reason, reason.replace('_', ' '))}")
-    return 0
+    return replay_log(args, _with_system_id(cfg, args.system_id))
 
 
 def _run(args) -> int:
