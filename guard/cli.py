@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+from pathlib import Path
 
 from guard import DEFAULT_CONFIG_PATH as DEFAULT_CONFIG
 from guard import __version__
@@ -20,11 +21,21 @@ EX_CONFIG = 78     # sysexits' configuration error: the systemd unit does not re
 def _replay(args) -> int:
     from dataclasses import replace
     from guard.config import load
-    from guard.runtime.replay_command import replay_log
+    from guard.runtime.replay_command import ONE_LOG_OPTIONS, replay_log, replay_logs
+    from guard.sources import find_logs
+    logs = find_logs(args.logs)
+    given = [f"--{o}" for o in ONE_LOG_OPTIONS if getattr(args, o)]
+    if len(logs) > 1 and given:
+        raise GuardError(f"{', '.join(given)}: one log's output, and {len(logs)} logs are given: replay them one at a time")
     cfg = load(args.config)
     if args.detector:
         cfg = replace(cfg, monitor=replace(cfg.monitor, detector=replace(cfg.monitor.detector, name=args.detector)))
-    return replay_log(args, _with_system_id(cfg, args.system_id))
+    cfg = _with_system_id(cfg, args.system_id)
+    if len(logs) == 1 and not any(Path(p).is_dir() for p in args.logs):
+        args.file = logs[0]
+        return replay_log(args, cfg)
+    from guard.runtime.tune import default_jobs
+    return replay_logs(logs, cfg, args.imu, args.gnss, args.jobs or default_jobs())
 
 
 def _run(args) -> int:
@@ -199,9 +210,13 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("--system-id", type=_system_id, help="as guard run --system-id")
     r.set_defaults(func=_config)
 
-    r = command("replay", help="run a log through the detector offline (tlog, DataFlash .bin, ULog .ulg)")
-    r.add_argument("file", help="a log: .tlog (MAVLink), .bin (ArduPilot DataFlash) or .ulg (PX4 ULog), "
-                   "recognised by its content")
+    r = command("replay", help="run logs through the detector offline (tlog, DataFlash .bin, ULog .ulg)",
+                description="Replay logs through the detector and say what each one showed. Several logs, or "
+                "folders of them (an SD card's), are replayed on --jobs processes with a closing count; "
+                "--report, --plot and --mcap take one log. Example: guard replay flight.bin --plot flight.png")
+    r.add_argument("logs", nargs="+", metavar="LOG",
+                   help="a log: .tlog (MAVLink), .bin (ArduPilot DataFlash) or .ulg (PX4 ULog), recognised by its "
+                   "content; or a folder of them")
     r.add_argument("--imu", type=int, metavar="N",
                    help="the IMU instance to read, in a log with several (default: the primary)")
     r.add_argument("--gnss", type=int, metavar="N", help="the GNSS receiver to read, in a log with several")
@@ -212,6 +227,8 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("--report", help="write the JSON report here ('-' for stdout)")
     r.add_argument("--plot", help="write the three-panel figure here (.png)")
     r.add_argument("--mcap", help="write an MCAP log here")
+    r.add_argument("--jobs", type=_positive_int, metavar="N",
+                   help="several logs: replay them on N processes (default: every core)")
     r.set_defaults(func=_replay)
 
     r = command("tune", help="fit the noise model to your vehicle's clean logs; write a profile for --config",

@@ -1,14 +1,23 @@
-"""`guard replay`: a log through the detector offline, and what it found said in words.
+"""`guard replay LOG_OR_FOLDER...`: logs through the detector offline, and what each one showed, in words.
 
-`replay_log` runs one log with the listeners whose findings the summary gives (the compass against
-the gyro, the timeline of what the core said, the accelerometers and the receiver's position against
-the GNSS velocity), writes what was asked (--report, --plot, --mcap) and prints the summary
-(`summary`: its lines).
+`analyse` runs one log with the listeners whose findings the summary gives (the compass against the
+gyro, the timeline of what the core said, the accelerometers and the receiver's position against
+the GNSS velocity) and returns its report and its summary's lines. One log (`replay_log`) may also
+be written out (--report, --plot, --mcap). Several logs, or folders of them (`replay_logs`, an SD
+card's worth), are replayed on --jobs processes, each summary printed in the order given as soon as
+it and those before it are done; a log that cannot be read is one line on stderr and the rest go on,
+and a closing line counts the alarms, the quiet logs and the unreadable ones (the exit status is 1
+if any was).
 """
 
 from __future__ import annotations
 
+import sys
+from concurrent.futures import ProcessPoolExecutor
+from contextlib import nullcontext
+
 from guard.config import Config, dump
+from guard.errors import GuardError
 from guard.core.aiding.rest import G, WINDOW_S
 from guard.core.judge import STANDING_GAP_S
 from guard.runtime.agreement import Agreement, said as wander_said
@@ -20,40 +29,80 @@ from guard.sinks.report import ADJUSTED, SKIPPED, FixGap
 from guard.sinks.timeline import Timeline
 
 
-def replay_log(args, cfg: Config) -> int:
-    """`args.file` replayed as the command line asks; its summary printed unless the report goes to stdout."""
+ONE_LOG_OPTIONS = ("report", "plot", "mcap")     # what writes one log's output to one place
+
+
+def analyse(path: str, cfg: Config, imu: int | None = None, gnss: int | None = None, listeners=(),
+            progress: bool = False) -> tuple[dict, list[str]]:
+    """The log at `path` replayed with the summary's listeners (and `listeners`): its report, with
+    what they measured, and its summary's lines."""
     headings = Headings(cfg=cfg.monitor)    # the compass against the gyro over the whole log
     timeline = Timeline()                   # what the core said, in order
     agreement = Agreement()                 # the levelled accelerometers against the GNSS velocity
     position = PositionWander(cfg.monitor.filter)   # the receiver's position against its own velocity
-    listeners = [headings, timeline, agreement, position]
+    report = replay(path, cfg, listeners=[headings, timeline, agreement, position, *listeners],
+                    progress=progress, imu=imu, gnss=gnss)
+    iron, before, first_s = compass_fits(headings, report)
+    report["compass_deviation"] = {**iron, **({"before_first_alarm": before} if before else {})}
+    report["accelerometer_wander"] = agreement.measure()
+    report["position_wander"] = position.measure()
+    return report, summary(path, report, timeline, iron_said(iron, before, first_s))
+
+
+def replay_log(args, cfg: Config) -> int:
+    """`args.file` replayed as the command line asks; its summary printed unless the report goes to stdout."""
     trace = Trace() if args.plot else None
-    if trace:
-        listeners.append(trace)
     log = None
     if args.mcap:
         from guard.sinks.mcap import McapLog
         log = McapLog(args.mcap, metadata={"config": cfg.source_text, "config_in_effect": dump(cfg),
                                            "source": args.file})
-        listeners.append(log)
     try:
-        report = replay(args.file, cfg, listeners=listeners, progress=args.report != "-", imu=args.imu, gnss=args.gnss)
+        report, lines = analyse(args.file, cfg, args.imu, args.gnss, [s for s in (trace, log) if s],
+                                progress=args.report != "-")
     finally:
         if log:
             log.close()
-    iron, before, first_s = compass_fits(headings, report)
-    report["compass_deviation"] = {**iron, **({"before_first_alarm": before} if before else {})}
-    report["accelerometer_wander"] = agreement.measure()
-    report["position_wander"] = position.measure()
     if args.report:
         write_report(report, args.report)
     if args.plot:
         from guard.sinks.plot import plot
         plot(trace, report, args.plot, truth_beside(args.file))
     if args.report != "-":
-        for line in summary(args.file, report, timeline, iron_said(iron, before, first_s)):
+        for line in lines:
             print(line)
     return 0
+
+
+def _each(job: tuple) -> tuple[list[str] | None, str | None, int]:
+    """One of several logs (a process of the pool): its summary's lines, or the error that stopped it;
+    and its alarms."""
+    path, cfg, imu, gnss = job
+    try:
+        report, lines = analyse(path, cfg, imu, gnss)
+    except GuardError as e:
+        return None, str(e), 0
+    return lines, None, len(report["alarms"])
+
+
+def replay_logs(paths: list[str], cfg: Config, imu: int | None, gnss: int | None, jobs: int) -> int:
+    """Several logs, each summary printed in the order given; 1 if any could not be read."""
+    alarms = alarmed = failed = 0
+    work = [(p, cfg, imu, gnss) for p in paths]
+    jobs = min(jobs, len(paths))
+    with ProcessPoolExecutor(jobs) if jobs > 1 else nullcontext() as pool:
+        for lines, error, n in (pool.map(_each, work) if pool else map(_each, work)):
+            if error is not None:
+                failed += 1
+                sys.stdout.flush()
+                print(f"guard: error: {error}", file=sys.stderr, flush=True)
+                continue
+            alarms, alarmed = alarms + n, alarmed + (n > 0)
+            print("\n".join(lines), flush=True)
+    read = len(paths) - failed
+    print(f"{len(paths)} logs: {alarms} alarm(s) in {alarmed} of them, {read - alarmed} without"
+          + (f"; {failed} could not be read (said above)" if failed else ""))
+    return 1 if failed else 0
 
 
 def summary(path: str, report: dict, timeline: Timeline, iron_line: str | None) -> list[str]:

@@ -10,6 +10,7 @@ one module plus one line here. Live links: `guard.sources.link` (MAVLink UDP/TCP
 from __future__ import annotations
 
 import importlib
+from pathlib import Path
 
 from guard.errors import SourceError
 from guard.sources.base import LogSource
@@ -21,6 +22,7 @@ LOG_FORMATS: dict[str, tuple[str, str, str]] = {
     "ulog": ("guard.sources.ulog", "looks_like_ulog", "UlogReader"),
 }
 HEAD_BYTES = 64
+LOG_SUFFIXES = (".tlog", ".bin", ".ulg")     # a file so named in a folder is taken as a log even if unreadable
 
 
 def log_format(path: str) -> str | None:
@@ -48,3 +50,31 @@ def open_log(path: str, **options) -> LogSource:
             raise SourceError(f"{path}: not a log guard reads (known formats: {known})")
     module, _, cls = LOG_FORMATS[name]
     return getattr(importlib.import_module(module), cls)(path, **options)
+
+
+def find_logs(paths: list[str]) -> list[str]:
+    """The logs at `paths`: a file as given; in a folder and its folders, in name order, each file
+    whose content is a log guard reads or whose name says it is one (so that a log too damaged to be
+    recognised is said, not passed over); other files (reports, plots, notes) are left. A SourceError
+    names a path that is not there, or a folder without a log."""
+    logs: list[str] = []
+    for path in map(Path, paths):
+        if path.is_dir():
+            found = [str(f) for f in sorted(path.rglob("*")) if f.is_file() and _a_log(f)]
+            if not found:
+                raise SourceError(f"{path}: no log in it or its folders (a .tlog, .bin or .ulg, by its content)")
+            logs += found
+        elif path.exists():
+            logs.append(str(path))
+        else:
+            raise SourceError(f"{path}: no such file or folder")
+    return logs
+
+
+def _a_log(path: Path) -> bool:
+    if path.suffix.lower() in LOG_SUFFIXES:
+        return True
+    try:
+        return log_format(str(path)) is not None
+    except SourceError:         # cannot be opened, and not named as a log: not one
+        return False

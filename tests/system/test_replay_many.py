@@ -1,0 +1,93 @@
+"""`guard replay` on several logs or a folder of them, as an operator replays an SD card: each log's
+summary in the order given, on one process or several alike; a log that cannot be read said in one
+line while the rest go on; a closing count; the options that write one log's output refused."""
+
+from __future__ import annotations
+
+import dataclasses
+import random
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from guard_sim import scenario
+from guard_sim.run import run
+from guard_sim.scenario import Attack
+
+REAL = Path(__file__).resolve().parents[3] / "shared" / "data" / "real" / "px4_vtol_cubeorange_short.ulg"
+
+
+def guard(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "guard", *args], capture_output=True, text=True, cwd=cwd,
+                          timeout=300)
+
+
+@pytest.fixture(scope="module")
+def card(tmp_path_factory) -> Path:
+    """A folder as an SD card holds it: a clean drive as tlog, an attacked one as ULog in a folder of
+    its own, each with the simulator's truth beside it, a .bin of random bytes, a note; and the real
+    PX4 log where it is here."""
+    d = tmp_path_factory.mktemp("card")
+    (d / "2026-11-29").mkdir()
+    clean = dataclasses.replace(scenario.load("clean"), duration_s=40.0)
+    run(clean, 1, tlog=str(d / "a-clean.tlog"))
+    attacked = dataclasses.replace(clean, attacks=(Attack("step", "gnss_pos", "north", 10.0, 30.0),))
+    run(attacked, 2, tlog=str(d / "attacked.tlog"), ulg=str(d / "2026-11-29" / "b-attacked.ulg"))
+    (d / "attacked.tlog").unlink()
+    rng = random.Random(0)
+    (d / "c-broken.bin").write_bytes(bytes(rng.randrange(256) for _ in range(3000)))
+    (d / "notes.txt").write_text("battery 3, props changed\n")
+    if REAL.is_file():
+        shutil.copy(REAL, d / "2026-11-29" / REAL.name)
+    return d
+
+
+def firsts(stdout: str) -> list[str]:
+    """Each log's first summary line, and the closing count."""
+    return [line for line in stdout.splitlines() if not line.startswith(" ")]
+
+
+def test_a_folder_is_each_log_in_order_the_unreadable_said_and_a_count(card, tmp_path):
+    p = guard("replay", str(card), "--jobs", "2", cwd=tmp_path)
+    assert p.returncode == 1 and "Traceback" not in p.stderr
+    lines = firsts(p.stdout)
+    names = [line.split(":")[0] for line in lines[:-1]]
+    real = [str(card / "2026-11-29" / REAL.name)] if REAL.is_file() else []
+    assert names == [str(card / "2026-11-29" / "b-attacked.ulg"), *real, str(card / "a-clean.tlog")]
+    by_name = dict(zip(names, lines))
+    assert ", first alarm at GNSS sample " in by_name[names[0]] and by_name[names[0]].endswith("(gnss_pos north)")
+    assert ", 0 alarm(s), no alarm" in by_name[str(card / "a-clean.tlog")]
+    assert p.stderr.strip().splitlines() == [f"guard: error: {card / 'c-broken.bin'}: not a log guard reads "
+                                             "(known formats: tlog, dataflash, ulog)"]
+    n = len(names) + 1
+    assert lines[-1].startswith(f"{n} logs: ") and lines[-1].endswith("; 1 could not be read (said above)")
+    assert "notes.txt" not in p.stdout + p.stderr and "truth.json" not in p.stdout + p.stderr
+
+
+def test_one_process_or_two_say_the_same(card, tmp_path):
+    logs = [str(card / "a-clean.tlog"), str(card / "2026-11-29")]
+    one, two = (guard("replay", *logs, "--jobs", j, cwd=tmp_path) for j in ("1", "2"))
+    assert one.returncode == two.returncode == 0, one.stderr
+    assert one.stdout == two.stdout and one.stdout.rstrip().splitlines()[-1].endswith(" without")
+
+
+def test_a_single_log_is_replayed_as_before(card, tmp_path):
+    p = guard("replay", str(card / "a-clean.tlog"), cwd=tmp_path)
+    assert p.returncode == 0 and firsts(p.stdout)[0].startswith(f"{card / 'a-clean.tlog'}: ")
+    assert " logs: " not in p.stdout
+
+
+def test_what_cannot_be_replayed_is_one_line_naming_it(card, tmp_path):
+    (tmp_path / "empty").mkdir()
+    for args, said in (((str(card), "--plot", "x.png"), "--plot: one log's output, and "),
+                       ((str(card / "a-clean.tlog"), str(card / "c-broken.bin"), "--report", "r.json", "--mcap",
+                         "m.mcap"), "--report, --mcap: one log's output, and 2 logs are given"),
+                       ((str(tmp_path / "empty"),), f"{tmp_path / 'empty'}: no log in it"),
+                       ((str(tmp_path / "absent.bin"),), f"{tmp_path / 'absent.bin'}: no such file or folder")):
+        p = guard("replay", *args, cwd=tmp_path)
+        assert p.returncode == 1 and p.stdout == "", args
+        assert len(p.stderr.strip().splitlines()) == 1 and said in p.stderr, (args, p.stderr)
+    assert not (tmp_path / "x.png").exists() and not (tmp_path / "r.json").exists()
