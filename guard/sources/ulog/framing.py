@@ -160,7 +160,18 @@ def walk(buf) -> Walk:
     if out.appended:
         return out
     chain, n, p = _Chain(buf), len(buf), HEADER
+    head, u16, topics, sizes = _HEAD.unpack_from, _U16.unpack_from, chain.topics, chain.sizes
     while p + 3 <= n:
+        # most messages: data of a topic whose size is learnt, before another topic's data (the checks
+        # below for that case, unrolled)
+        size, kind = head(buf, p)
+        end = p + 3 + size
+        if kind == _D and end + 5 <= n and sizes.get(u16(buf, p + 3)[0]) == size:
+            next_size, next_kind = head(buf, end)
+            if next_kind == _D and next_size >= 2 and u16(buf, end + 3)[0] in topics:
+                out.messages += 1
+                p = end
+                continue
         end = chain.whole(p)
         if end is not None:
             chain.take(p, end)      # a topic added here may be the next message's
