@@ -128,8 +128,10 @@ def _recover(args) -> int:
 def _tune(args) -> int:
     from guard.config import load
     from guard.runtime.tune import default_jobs, tune, write_profile
-    profile, cfg = tune(args.logs, load(args.config), jobs=args.jobs or default_jobs())
-    write_profile(profile, args.out, args.logs, cfg)
+    from guard.sources import find_logs
+    logs = [log for given in args.logs for log in (find_logs([given]) if Path(given).is_dir() else [given])]
+    profile, cfg = tune(logs, load(args.config), jobs=args.jobs or default_jobs())
+    write_profile(profile, args.out, logs, cfg)
     changed = ", ".join(f"{k} = {v:g}" for table in profile.values() for k, v in table.items()) or "nothing"
     print(f"guard tune: {args.out}: {changed}")
     return 0
@@ -236,7 +238,8 @@ def parser() -> argparse.ArgumentParser:
                        "latency, the compass's offset) to clean logs of one vehicle, print the margins it "
                        "leaves, and write a TOML profile. Example: guard tune flight1.bin flight2.bin "
                        "--out my-rover.toml, then guard run --config my-rover.toml")
-    r.add_argument("logs", nargs="+", help="clean logs of the vehicle (.tlog, .bin, .ulg), without an attack")
+    r.add_argument("logs", nargs="+", help="clean logs of the vehicle (.tlog, .bin, .ulg), without an attack, "
+                   "or folders of them")
     r.add_argument("--out", default="guard-profile.toml", help="the profile to write (default: guard-profile.toml)")
     r.add_argument("--config", help="the config to start from (default: guard's defaults)")
     r.add_argument("--jobs", type=_positive_int, metavar="N",

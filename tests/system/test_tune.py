@@ -3,9 +3,12 @@ GNSS velocity attack, on wheels that slip as a car's. Tuned on two clean drives,
 on a third, held out, and the held-out drive's attack is still caught at once."""
 
 import dataclasses
+import shutil
 import subprocess
 import sys
 import tomllib
+
+from pathlib import Path
 
 import pytest
 
@@ -66,7 +69,10 @@ def test_the_cli_writes_a_profile_and_names_a_missing_log(drives, tmp_path):
     base = tmp_path / "base.toml"
     base.write_text('[monitor]\nvehicle = "ground"\n\n[link]\nconnect = "udpin:0.0.0.0:14551"\n')
     out = tmp_path / "vehicle.toml"
-    p = subprocess.run([sys.executable, "-m", "guard", "tune", drives[1], "--out", str(out), "--config", str(base),
+    folder = tmp_path / "clean"             # a folder of clean logs is its logs
+    folder.mkdir()
+    shutil.copy(drives[1], folder)
+    p = subprocess.run([sys.executable, "-m", "guard", "tune", str(folder), "--out", str(out), "--config", str(base),
                         "--jobs", "2"],
                        capture_output=True, text=True, cwd=tmp_path)
     assert p.returncode == 0, p.stderr
@@ -75,7 +81,7 @@ def test_the_cli_writes_a_profile_and_names_a_missing_log(drives, tmp_path):
     alone = load(str(out))
     assert alone.monitor.vehicle == "ground" and alone.link.connect == "udpin:0.0.0.0:14551"
     assert alone.monitor.filter.gnss_delay_s == pytest.approx(0.2)
-    assert "connect, vehicle." in out.read_text()
+    assert "connect, vehicle." in out.read_text() and f"#   {Path(drives[1]).name}\n" in out.read_text()
     p = subprocess.run([sys.executable, "-m", "guard", "tune", str(tmp_path / "absent.bin")],
                        capture_output=True, text=True, cwd=tmp_path)
     assert p.returncode == 1 and p.stderr.strip() == f"guard: error: {tmp_path / 'absent.bin'}: no such file"
