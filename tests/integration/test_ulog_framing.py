@@ -135,3 +135,19 @@ def test_a_file_with_data_appended_is_not_walked(logs):
     data[16 + 3 + 8] |= 1
     w = walk(bytes(data))
     assert w.appended and w.spans == [] and w.messages == 0
+
+
+def test_a_byte_flipped_inside_a_format_leaves_pyulog_the_rest_of_it(logs, tmp_path):
+    """A format ('F') whose text has one byte flipped in a field's name guard does not read is still
+    framed: pyulog reads the topic's other fields, and every fix is read."""
+    data = logs["sim"].read_bytes()
+    msgs, _ = messages(data)
+    gps_format = next(m for m in msgs if data[m[0] + 2] == ord("F")
+                      and data[m[0] + 3:m[0] + 3 + m[1]].split(b":")[0].decode() in GNSS)
+    at = data.index(b"device_id", gps_format[0], gps_format[0] + 3 + gps_format[1]) + 4
+    copy = tmp_path / "garbled-format.ulg"
+    copy.write_bytes(data[:at] + b"\xff" + data[at + 1:])
+    assert walk(copy.read_bytes()).spans == []
+    clean_fixes, clean_imu, _ = count(logs["sim"])
+    fixes, imu, skipped = count(copy)
+    assert (fixes, imu) == (clean_fixes, clean_imu) and "garbage_bytes" not in skipped, skipped

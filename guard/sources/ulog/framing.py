@@ -11,14 +11,17 @@ older PX4 logs do not write) or chance puts it back on a boundary. One flipped b
 - a data message ('D') names a topic added before ('A'), and has the size its topic's messages had
   before (a topic's messages are one struct: every clean public ULog read here keeps one size per
   topic);
-- any other message has its type's shape: a key or a name in printable ASCII where it has one, a
-  log level '0' to '7' where it has one, a sync message's magic bytes, a dropout's or a removal's 2
-  bytes, flag bits only first (random bytes with a long size would otherwise land the walk on a
-  boundary far past the damage and lose what lies between);
+- any other message has its type's structure: a key's length inside the message, a sync message's
+  8 bytes, a dropout's or a removal's 2, a format's ':', flag bits only first;
 - the next message's header looks like one too (the check that catches a corrupt size).
 A message that fails is where the chain broke. The walk looks on from the byte after it for the
 first place where CHAIN messages in a row pass, and skips to there: the corrupt span is lost (the
-message that broke and what the walk could not frame), and the rest is read. A size that runs past
+message that broke and what the walk could not frame), and the rest is read. There, where nothing
+vouches for the place, each message must also have its type's content: a key or a name in printable
+ASCII, a log level '0' to '7', a sync message's magic bytes (random bytes with a long size would
+otherwise land the walk on a boundary far past the damage and lose what lies between). On the chain
+the content is not asked: a byte flipped inside a format's or a key's text leaves pyulog the message
+to make what it can of (a format with one field's name garbled still reads the other fields). A size that runs past
 the file's end, with no chain after it, is the file's cut end: left for pyulog to stop at.
 
 `mend` gives pyulog the file without the spans (None where nothing was skipped: the file as it is).
@@ -45,25 +48,27 @@ _A, _D, _B = ord("A"), ord("D"), ord("B")
 _KEYED = {ord("I"): 0, ord("P"): 0, ord("M"): 1, ord("Q"): 1}     # where the key's length byte sits
 
 
-def _shaped(buf, p: int, size: int, kind: int) -> bool:
-    """Whether the `size` bytes after a header of type `kind` (not data) at p have that type's shape."""
+def _shaped(buf, p: int, size: int, kind: int, strict: bool) -> bool:
+    """Whether the `size` bytes after a header of type `kind` (not data) at p have that type's
+    structure and, if `strict`, its content."""
     body = p + 3
     if kind in _KEYED:
         at = body + _KEYED[kind]
         if at >= body + size:
             return False
         n = buf[at]
-        return 0 < n < body + size - at and _PRINTABLE.fullmatch(buf[at + 1:at + 1 + n]) is not None
+        return 0 < n < body + size - at and (not strict or _PRINTABLE.fullmatch(buf[at + 1:at + 1 + n]) is not None)
     if kind == _A:
-        return size > 3 and _PRINTABLE.fullmatch(buf[body + 3:body + size]) is not None
+        return size > 3 and (not strict or _PRINTABLE.fullmatch(buf[body + 3:body + size]) is not None)
     if kind in (ord("L"), ord("C")):
-        return size > 9 and buf[body] in _LEVELS
+        return size >= (9 if kind == ord("L") else 11) and (not strict or buf[body] in _LEVELS)
     if kind == ord("S"):
-        return size == len(SYNC) and buf[body:body + size] == SYNC
+        return size == len(SYNC) and (not strict or buf[body:body + size] == SYNC)
     if kind in (ord("O"), ord("R")):
         return size == 2
     if kind == ord("F"):
-        return _PRINTABLE.fullmatch(buf[body:body + size]) is not None and b":" in buf[body:body + size]
+        text = buf[body:body + size]
+        return b":" in text and (not strict or _PRINTABLE.fullmatch(text) is not None)
     return p == HEADER      # flag bits: the first message only
 
 
@@ -94,10 +99,10 @@ class _Chain:
         self.topics: set[int] = set()
         self.sizes: dict[int, int] = {}
 
-    def head(self, p: int) -> tuple[int, int] | None:
+    def head(self, p: int, strict: bool = True) -> tuple[int, int] | None:
         """(size, type) of a message that may start at p: None if it cannot (a type ULog does not
-        define, size 0, a data message of a topic not added, another message not of its type's shape
-        or past the file's end)."""
+        define, size 0, a data message of a topic not added, another message past the file's end or
+        not of its type's structure, or if `strict` its content)."""
         if p + 3 > self.n:
             return None
         size, kind = _HEAD.unpack_from(self.buf, p)
@@ -109,14 +114,14 @@ class _Chain:
             topic = _U16.unpack_from(self.buf, p + 3)[0]
             if topic not in self.topics:
                 return None
-        elif p + 3 + size > self.n or not _shaped(self.buf, p, size, kind):
+        elif p + 3 + size > self.n or not _shaped(self.buf, p, size, kind, strict):
             return None
         return size, kind
 
-    def whole(self, p: int) -> int | None:
-        """Where the next message starts if one starts at p, ends inside the file and, being a data
-        message, has its topic's size; else None."""
-        h = self.head(p)
+    def whole(self, p: int, strict: bool = True) -> int | None:
+        """Where the next message starts if one starts at p (`head`), ends inside the file and, being a
+        data message, has its topic's size; else None."""
+        h = self.head(p, strict)
         if h is None:
             return None
         size, kind = h
@@ -172,10 +177,10 @@ def walk(buf) -> Walk:
                 out.messages += 1
                 p = end
                 continue
-        end = chain.whole(p)
+        end = chain.whole(p, strict=False)
         if end is not None:
             chain.take(p, end)      # a topic added here may be the next message's
-        if end is not None and (end == n or chain.head(end) is not None):
+        if end is not None and (end == n or chain.head(end, strict=False) is not None):
             out.messages += 1
             p = end
             continue
