@@ -75,11 +75,15 @@ def test_clean_logs_frame_whole(logs):
 
 def damaged(data: bytes, seed: int, how: str) -> tuple[bytes, tuple[int, int]]:
     """`data` with one GNSS data message's size or type byte corrupted, or a hole of random bytes
-    over a few messages, in the middle half of the file; and the span of bytes damaged."""
+    over a few messages, in the middle half of the file (or, `first`, the size of the topic's first
+    data message); and the span of bytes damaged."""
     rng = random.Random(seed)
     msgs, _ = messages(data)
-    fixes = [m for m in msgs[len(msgs) // 4:3 * len(msgs) // 4] if m[2] in GNSS]
-    pos, size, _ = rng.choice(fixes)
+    if how == "first":
+        pos, size, _ = next(m for m in msgs if m[2] in GNSS)
+        how = "size"
+    else:
+        pos, size, _ = rng.choice([m for m in msgs[len(msgs) // 4:3 * len(msgs) // 4] if m[2] in GNSS])
     out = bytearray(data)
     if how == "size":
         struct.pack_into("<H", out, pos, size + rng.choice([-7, 1, 13, 200, 3000]))
@@ -92,7 +96,7 @@ def damaged(data: bytes, seed: int, how: str) -> tuple[bytes, tuple[int, int]]:
     return bytes(out), (pos, pos + n)
 
 
-@pytest.mark.parametrize("how", ["size", "type", "hole"])
+@pytest.mark.parametrize("how", ["size", "first", "type", "hole"])
 def test_a_broken_chain_loses_only_what_the_damage_touched(logs, tmp_path, how):
     hurt_pyulog = 0
     for origin, path in logs.items():
@@ -105,14 +109,13 @@ def test_a_broken_chain_loses_only_what_the_damage_touched(logs, tmp_path, how):
             copy.write_bytes(bad)
             touched = [m for m in msgs if m[0] < b and m[0] + 3 + m[1] > a]
             fixes, imu, skipped = count(copy)
-            # the damaged messages, and at most the one after them whose header the walk could not trust
-            lost_fixes = sum(m[2] in GNSS for m in touched) + 1
-            lost_imu = sum(m[2] == "sensor_combined" for m in touched) + 1
+            lost_fixes = sum(m[2] in GNSS for m in touched)        # the damaged messages, no more
+            lost_imu = sum(m[2] == "sensor_combined" for m in touched)
             assert clean_fixes - lost_fixes <= fixes <= clean_fixes, (origin, seed)
             assert clean_imu - lost_imu <= imu <= clean_imu, (origin, seed)
             assert skipped.get("garbage_bytes", 0) >= 3, (origin, seed, skipped)
             hurt_pyulog += pyulog_fixes(copy) < clean_fixes - lost_fixes
-    if how == "size":
+    if how in ("size", "first"):
         # the damage matters: read by pyulog alone, most of these copies lose fixes beyond it
         assert hurt_pyulog >= len(logs) * len(SEEDS) // 2
 
@@ -151,3 +154,34 @@ def test_a_byte_flipped_inside_a_format_leaves_pyulog_the_rest_of_it(logs, tmp_p
     clean_fixes, clean_imu, _ = count(logs["sim"])
     fixes, imu, skipped = count(copy)
     assert (fixes, imu) == (clean_fixes, clean_imu) and "garbage_bytes" not in skipped, skipped
+
+
+def test_a_corrupt_name_costs_that_topic_alone(logs, tmp_path):
+    """A byte flipped in the name of the topic an 'A' adds: pyulog cannot find its format and loses
+    that topic, as it would alone; every other topic reads whole (its data messages framed, not
+    taken for a broken chain)."""
+    data = logs["sim"].read_bytes()
+    msgs, _ = messages(data)
+    clean_fixes, clean_imu, _ = count(logs["sim"])
+    for topic, kept in (("sensor_combined", 0), (None, 1)):
+        add = next(m for m in msgs if data[m[0] + 2] == ord("A") and (
+            data[m[0] + 6:m[0] + 3 + m[1]].decode() == topic if topic else data[m[0] + 6:m[0] + 3 + m[1]].decode() in GNSS))
+        bad = bytearray(data)
+        bad[add[0] + 7] = 0x01
+        copy = tmp_path / f"name-{kept}.ulg"
+        copy.write_bytes(bytes(bad))
+        fixes, imu, skipped = count(copy)
+        assert "garbage_bytes" not in skipped, skipped
+        assert (fixes, imu)[kept] == (clean_fixes, clean_imu)[kept] and (fixes, imu)[1 - kept] == 0, (topic, fixes, imu)
+
+
+def test_a_log_message_with_no_text_is_a_message(logs, tmp_path):
+    """A logged message ('L') of no text is 9 bytes (a level and a time stamp), and valid."""
+    data = logs["sim"].read_bytes()
+    msgs, _ = messages(data)
+    at = next(m for m in msgs if m[2] is not None)[0]          # before the first data message
+    empty = struct.pack("<HB", 9, ord("L")) + b"6" + struct.pack("<Q", 1_000_000)
+    copy = tmp_path / "empty-text.ulg"
+    copy.write_bytes(data[:at] + empty + data[at:])
+    assert walk(copy.read_bytes()).spans == []
+    assert count(copy)[:2] == count(logs["sim"])[:2]

@@ -8,21 +8,24 @@ older PX4 logs do not write) or chance puts it back on a boundary. One flipped b
 
 `walk` follows the chain and checks each message against what the log itself has shown:
 - its type is one ULog defines, its size is not 0 and it ends inside the file;
-- a data message ('D') names a topic added before ('A'), and has the size its topic's messages had
-  before (a topic's messages are one struct: every clean public ULog read here keeps one size per
-  topic);
+- a data message ('D') of a topic added before ('A') has its topic's size: the size of its format,
+  as pyulog parses the log's definitions (pyulog requires it too), or where pyulog cannot, the size
+  of the topic's first data message that CHAIN messages in a row follow (a topic's messages are one
+  struct: every clean public ULog read here keeps one size per topic);
 - any other message has its type's structure: a key's length inside the message, a sync message's
   8 bytes, a dropout's or a removal's 2, a format's ':', flag bits only first;
 - the next message's header looks like one too (the check that catches a corrupt size).
-A message that fails is where the chain broke. The walk looks on from the byte after it for the
-first place where CHAIN messages in a row pass, and skips to there: the corrupt span is lost (the
-message that broke and what the walk could not frame), and the rest is read. There, where nothing
-vouches for the place, each message must also have its type's content: a key or a name in printable
-ASCII, a log level '0' to '7', a sync message's magic bytes (random bytes with a long size would
+Where a message fails, or the one after it, the chain broke. The walk looks on from the byte after
+the message for the first place where CHAIN messages in a row pass, and skips to there: the corrupt
+span is lost (the message that broke, if that place lies inside it, and what the walk could not
+frame), and the rest is read. There, where nothing vouches for the place, each message must also
+have its type's content: a key or a name in printable ASCII, a log level '0' to '7', a sync
+message's magic bytes, a data message a topic added before (random bytes with a long size would
 otherwise land the walk on a boundary far past the damage and lose what lies between). On the chain
-the content is not asked: a byte flipped inside a format's or a key's text leaves pyulog the message
-to make what it can of (a format with one field's name garbled still reads the other fields). A size that runs past
-the file's end, with no chain after it, is the file's cut end: left for pyulog to stop at.
+the content is not asked: a byte flipped inside a format's or a key's text, or a data message of a
+topic whose 'A' was lost, is left to pyulog to make what it can of (a format with one field's name
+garbled still reads the other fields). A size that runs past the file's end, with no chain after
+it, is the file's cut end: left for pyulog to stop at.
 
 `mend` gives pyulog the file without the spans (None where nothing was skipped: the file as it is).
 A file with data appended after the log (its flag bits give offsets into the file) is not mended:
@@ -34,6 +37,8 @@ from __future__ import annotations
 import re
 import struct
 from dataclasses import dataclass, field
+
+from pyulog import ULog
 
 HEADER = 16                     # bytes of the file header before the first message
 TYPES = frozenset(b"BFIMPQARDLCOS")     # the message types ULog defines
@@ -92,17 +97,20 @@ class Walk:
 
 
 class _Chain:
-    """The checks, with the topics ('A') and their data messages' sizes learnt as the walk goes."""
+    """The checks, with the topics ('A') and their data messages' sizes known as the walk goes: from the
+    log's formats where pyulog can read them (`formats`: its message_formats), else learnt from a
+    topic's first data message that CHAIN messages in a row follow."""
 
-    def __init__(self, buf):
-        self.buf, self.n = buf, len(buf)
+    def __init__(self, buf, formats: dict | None = None):
+        self.buf, self.n, self.formats = buf, len(buf), formats
         self.topics: set[int] = set()
-        self.sizes: dict[int, int] = {}
+        self.sizes: dict[int, int] = {}                     # a topic's data messages' size
+        self.ranges: dict[int, tuple[int, int]] = {}        # ... where its format allows a range (padding)
 
     def head(self, p: int, strict: bool = True) -> tuple[int, int] | None:
         """(size, type) of a message that may start at p: None if it cannot (a type ULog does not
-        define, size 0, a data message of a topic not added, another message past the file's end or
-        not of its type's structure, or if `strict` its content)."""
+        define, size 0, a message past the file's end or not of its type's structure; if `strict`,
+        not of its type's content or a data message of a topic not added)."""
         if p + 3 > self.n:
             return None
         size, kind = _HEAD.unpack_from(self.buf, p)
@@ -111,8 +119,7 @@ class _Chain:
         if kind == _D:
             if size < 2 or p + 5 > self.n:
                 return None
-            topic = _U16.unpack_from(self.buf, p + 3)[0]
-            if topic not in self.topics:
+            if strict and _U16.unpack_from(self.buf, p + 3)[0] not in self.topics:
                 return None
         elif p + 3 + size > self.n or not _shaped(self.buf, p, size, kind, strict):
             return None
@@ -128,8 +135,13 @@ class _Chain:
         end = p + 3 + size
         if end > self.n:
             return None
-        if kind == _D and self.sizes.get(_U16.unpack_from(self.buf, p + 3)[0], size) != size:
-            return None
+        if kind == _D:
+            topic = _U16.unpack_from(self.buf, p + 3)[0]
+            if self.sizes.get(topic, size) != size:
+                return None
+            lo, hi = self.ranges.get(topic, (size, size))
+            if not lo <= size <= hi:
+                return None
         return end
 
     def holds(self, q: int) -> bool:
@@ -143,12 +155,34 @@ class _Chain:
         return True
 
     def take(self, p: int, end: int) -> None:
-        """The message at p is whole: learn the topic it adds, or its topic's size once it is framed."""
+        """The message at p is whole: learn the topic it adds (and its size, from its format), or a
+        topic's size from its first data message that CHAIN messages follow."""
         kind = self.buf[p + 2]
         if kind == _A and end - p >= 6:
-            self.topics.add(_U16.unpack_from(self.buf, p + 4)[0])
+            topic = _U16.unpack_from(self.buf, p + 4)[0]
+            self.topics.add(topic)
+            if topic not in self.sizes and topic not in self.ranges and (size := self._size(p, end)):
+                lo, hi = size
+                if lo == hi:
+                    self.sizes[topic] = lo
+                else:
+                    self.ranges[topic] = size
         elif kind == _D:
-            self.sizes.setdefault(_U16.unpack_from(self.buf, p + 3)[0], end - p - 3)
+            topic = _U16.unpack_from(self.buf, p + 3)[0]
+            if topic in self.topics and topic not in self.sizes and topic not in self.ranges and self.holds(p):
+                self.sizes[topic] = end - p - 3
+
+    def _size(self, p: int, end: int) -> tuple[int, int] | None:
+        """The least and most size of the data messages of the topic the 'A' at p adds, as pyulog
+        parses its format (None where it cannot)."""
+        if not self.formats:
+            return None
+        try:
+            added = ULog._MessageAddLogged(bytes(self.buf[p + 3:end]), None, self.formats)
+        except Exception:       # noqa: BLE001 - a format pyulog cannot parse: the size is learnt instead
+            return None
+        lo = added.dtype.itemsize
+        return 2 + lo, 2 + max(added.max_data_size, lo)
 
 
 def _appended(buf) -> bool:
@@ -159,15 +193,16 @@ def _appended(buf) -> bool:
     return kind == _B and size >= 16 and bool(buf[HEADER + 3 + 8] & 1)
 
 
-def walk(buf) -> Walk:
-    """The framing of the ULog in `buf` (bytes, or a memory map), from its first message on."""
+def walk(buf, formats: dict | None = None) -> Walk:
+    """The framing of the ULog in `buf` (bytes), from its first message on; `formats`, pyulog's
+    message_formats of its definitions, give each topic's size (else it is learnt)."""
     out = Walk(appended=_appended(buf))
     if out.appended:
         return out
-    chain, n, p = _Chain(buf), len(buf), HEADER
+    chain, n, p = _Chain(buf, formats), len(buf), HEADER
     head, u16, topics, sizes = _HEAD.unpack_from, _U16.unpack_from, chain.topics, chain.sizes
     while p + 3 <= n:
-        # most messages: data of a topic whose size is learnt, before another topic's data (the checks
+        # most messages: data of a topic whose size is known, before another topic's data (the checks
         # below for that case, unrolled)
         size, kind = head(buf, p)
         end = p + 3 + size
@@ -180,13 +215,16 @@ def walk(buf) -> Walk:
         end = chain.whole(p, strict=False)
         if end is not None:
             chain.take(p, end)      # a topic added here may be the next message's
-        if end is not None and (end == n or chain.head(end, strict=False) is not None):
-            out.messages += 1
-            p = end
-            continue
+            if end == n or chain.head(end, strict=False) is not None:
+                out.messages += 1
+                p = end
+                continue
         q = _resume(chain, p + 1)
         if q is None:
             break           # nothing framed after p: the file's cut end (or all corrupt), pyulog's to stop at
+        if end is not None and q >= end:
+            out.messages += 1       # the message at p was whole: what broke came after it
+            p = end
         out.spans.append((p, q))
         p = q
     return out
@@ -207,9 +245,9 @@ def _resume(chain: _Chain, p: int) -> int | None:
         p = q + 1
 
 
-def mend(buf) -> tuple[bytes | None, Walk]:
+def mend(buf, formats: dict | None = None) -> tuple[bytes | None, Walk]:
     """The file without the spans `walk` could not frame (None: nothing to skip), and the walk."""
-    w = walk(buf)
+    w = walk(buf, formats)
     if not w.spans:
         return None, w
     parts, at = [], 0

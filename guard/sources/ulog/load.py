@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import io
 import logging
-import mmap
 
 from pyulog import ULog
 from pyulog.exceptions import ULogException
@@ -67,15 +66,21 @@ class _TrackedFile:
         """pyulog closes its file when done; the reader closes its own."""
 
 
-def _mended(f) -> tuple[io.BytesIO | None, Walk]:
-    """The file without the spans its framing's walk skipped (None where it skipped none), and the walk."""
+def _mended(f, path: str) -> tuple[io.BytesIO | None, Walk]:
+    """The file without the spans its framing's walk skipped (None where it skipped none), and the walk.
+    The file is read whole (a read error is a SourceError, where a mapped file's would kill the
+    process); its definitions' formats, as pyulog reads them, give the walk its topics' sizes."""
     try:
-        view = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
-    except (ValueError, OSError):       # an empty file (or one that cannot be mapped): pyulog says why
-        return None, Walk()
-    with view:
-        data, walk = mend(view)
-    return (None if data is None else io.BytesIO(data)), walk
+        data = f.read()
+        f.seek(0)
+    except OSError as e:
+        raise SourceError(f"{path}: cannot read: {e.strerror}") from None
+    try:
+        formats = ULog(io.BytesIO(data), parse_header_only=True).message_formats
+    except Exception:       # noqa: BLE001 - definitions pyulog cannot read: the walk learns the sizes
+        formats = None
+    mended, walk = mend(data, formats)
+    return (None if mended is None else io.BytesIO(mended)), walk
 
 
 def load(path: str, topics: list[str] | None = None) -> tuple[ULog, int | None, Walk]:
@@ -86,7 +91,7 @@ def load(path: str, topics: list[str] | None = None) -> tuple[ULog, int | None, 
     except OSError as e:
         raise SourceError(f"{path}: cannot open: {e.strerror}") from None
     with f, printed() as said:
-        mended, walk = _mended(f)
+        mended, walk = _mended(f, path)
         tracked = _TrackedFile(f if mended is None else mended)
         try:
             ulog = ULog(tracked, message_name_filter_list=TOPICS if topics is None else topics)
