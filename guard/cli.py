@@ -21,7 +21,7 @@ EX_CONFIG = 78     # sysexits' configuration error: the systemd unit does not re
 def _replay(args) -> int:
     from dataclasses import replace
     from guard.config import load
-    from guard.runtime.replay_command import ONE_LOG_OPTIONS, replay_log, replay_logs
+    from guard.runtime.replay_command import ONE_LOG_OPTIONS, replay_log, replay_logs, unreadable_folder
     from guard.sources import find_logs
     logs = find_logs(args.logs)
     given = [f"--{o}" for o in ONE_LOG_OPTIONS if getattr(args, o)]
@@ -31,7 +31,9 @@ def _replay(args) -> int:
     if args.detector:
         cfg = replace(cfg, monitor=replace(cfg.monitor, detector=replace(cfg.monitor.detector, name=args.detector)))
     cfg = _with_system_id(cfg, args.system_id)
-    if len(logs) == 1 and not any(Path(p).is_dir() for p in args.logs):
+    if len(logs) == 1:          # one log, however named (a folder that holds one): as a log given alone
+        if error := unreadable_folder(logs[0]):
+            raise GuardError(error)
         args.file = logs[0]
         return replay_log(args, cfg)
     from guard.runtime.tune import default_jobs

@@ -12,8 +12,10 @@ if any was).
 
 from __future__ import annotations
 
+import os
 import sys
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from contextlib import nullcontext
 
 from guard.config import Config, dump
@@ -74,10 +76,23 @@ def replay_log(args, cfg: Config) -> int:
     return 0
 
 
+def unreadable_folder(path: str) -> str | None:
+    """Why `path` is a folder that could not be read (`find_logs` names such folders among the logs)."""
+    if not os.path.isdir(path):
+        return None
+    try:
+        os.listdir(path)
+    except OSError as e:
+        return f"{path}: cannot read the folder: {e.strerror}"
+    return f"{path}: a folder, not a log"
+
+
 def _each(job: tuple) -> tuple[list[str] | None, str | None, int]:
     """One of several logs (a process of the pool): its summary's lines, or the error that stopped it;
     and its alarms."""
     path, cfg, imu, gnss = job
+    if error := unreadable_folder(path):
+        return None, error, 0
     try:
         report, lines = analyse(path, cfg, imu, gnss)
     except GuardError as e:
@@ -90,15 +105,22 @@ def replay_logs(paths: list[str], cfg: Config, imu: int | None, gnss: int | None
     alarms = alarmed = failed = 0
     work = [(p, cfg, imu, gnss) for p in paths]
     jobs = min(jobs, len(paths))
+    done = 0
     with ProcessPoolExecutor(jobs) if jobs > 1 else nullcontext() as pool:
-        for lines, error, n in (pool.map(_each, work) if pool else map(_each, work)):
-            if error is not None:
-                failed += 1
-                sys.stdout.flush()
-                print(f"guard: error: {error}", file=sys.stderr, flush=True)
-                continue
-            alarms, alarmed = alarms + n, alarmed + (n > 0)
-            print("\n".join(lines), flush=True)
+        try:
+            for lines, error, n in (pool.map(_each, work) if pool else map(_each, work)):
+                done += 1
+                if error is not None:
+                    failed += 1
+                    sys.stdout.flush()
+                    print(f"guard: error: {error}", file=sys.stderr, flush=True)
+                    continue
+                alarms, alarmed = alarms + n, alarmed + (n > 0)
+                print("\n".join(lines), flush=True)
+        except BrokenProcessPool:   # a process killed (out of memory, a bus error reading a failing card)
+            failed += len(paths) - done
+            print(f"guard: error: a replay process died: {paths[done]} and the {len(paths) - done - 1} logs after "
+                  "it were not replayed", file=sys.stderr, flush=True)
     read = len(paths) - failed
     print(f"{len(paths)} logs: {alarms} alarm(s) in {alarmed} of them, {read - alarmed} without"
           + (f"; {failed} could not be read (said above)" if failed else ""))

@@ -10,6 +10,7 @@ one module plus one line here. Live links: `guard.sources.link` (MAVLink UDP/TCP
 from __future__ import annotations
 
 import importlib
+import os
 from pathlib import Path
 
 from guard.errors import SourceError
@@ -53,14 +54,15 @@ def open_log(path: str, **options) -> LogSource:
 
 
 def find_logs(paths: list[str]) -> list[str]:
-    """The logs at `paths`: a file as given; in a folder and its folders, in name order, each file
-    whose content is a log guard reads or whose name says it is one (so that a log too damaged to be
-    recognised is said, not passed over); other files (reports, plots, notes) are left. A SourceError
-    names a path that is not there, or a folder without a log."""
+    """The logs at `paths`, each once (the first time it is named): a file as given; in a folder and
+    its folders, in name order, each file whose content is a log guard reads or whose name says it is
+    one (so that a log too damaged to be recognised is said, not passed over), and each folder that
+    cannot be read (so that it is said too); other files (reports, plots, notes) are left. A
+    SourceError names a path that is not there, or a folder without a log."""
     logs: list[str] = []
     for path in map(Path, paths):
         if path.is_dir():
-            found = [str(f) for f in sorted(path.rglob("*")) if f.is_file() and _a_log(f)]
+            found = _logs_under(path)
             if not found:
                 raise SourceError(f"{path}: no log in it or its folders (a .tlog, .bin or .ulg, by its content)")
             logs += found
@@ -68,13 +70,24 @@ def find_logs(paths: list[str]) -> list[str]:
             logs.append(str(path))
         else:
             raise SourceError(f"{path}: no such file or folder")
-    return logs
+    seen: set[Path] = set()
+    return [p for p in logs if not (Path(p).resolve() in seen or seen.add(Path(p).resolve()))]
+
+
+def _logs_under(folder: Path) -> list[str]:
+    """The logs in `folder` and its folders, and the folders that could not be read, in name order."""
+    found: list[str] = []
+    unreadable: list[str] = []
+    for root, _, files in os.walk(folder, onerror=lambda e: unreadable.append(e.filename)):
+        found += [str(Path(root) / f) for f in files if _a_log(Path(root) / f)]
+    return sorted(found + unreadable, key=lambda p: Path(p).parts)
 
 
 def _a_log(path: Path) -> bool:
+    """Named as a log, or holding one (a file that cannot be opened, and is not named as a log, is not)."""
     if path.suffix.lower() in LOG_SUFFIXES:
         return True
     try:
-        return log_format(str(path)) is not None
-    except SourceError:         # cannot be opened, and not named as a log: not one
+        return path.is_file() and log_format(str(path)) is not None
+    except SourceError:
         return False

@@ -5,6 +5,8 @@ line while the rest go on; a closing count; the options that write one log's out
 from __future__ import annotations
 
 import dataclasses
+import json
+import os
 import random
 import shutil
 import subprocess
@@ -13,6 +15,9 @@ from pathlib import Path
 
 import pytest
 
+from guard.config import Config
+from guard.runtime.replay_command import replay_logs
+from guard.sources import find_logs
 from guard_sim import scenario
 from guard_sim.run import run
 from guard_sim.scenario import Attack
@@ -91,3 +96,41 @@ def test_what_cannot_be_replayed_is_one_line_naming_it(card, tmp_path):
         assert p.returncode == 1 and p.stdout == "", args
         assert len(p.stderr.strip().splitlines()) == 1 and said in p.stderr, (args, p.stderr)
     assert not (tmp_path / "x.png").exists() and not (tmp_path / "r.json").exists()
+
+
+def test_a_folder_holding_one_log_is_that_log(card, tmp_path):
+    one = tmp_path / "one"
+    one.mkdir()
+    shutil.copy(card / "a-clean.tlog", one)
+    p = guard("replay", str(one), "--report", "r.json", cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    assert json.loads((tmp_path / "r.json").read_text())["source"] == str(one / "a-clean.tlog")
+    assert " logs: " not in p.stdout
+
+
+def test_a_log_named_twice_is_replayed_once(card, tmp_path):
+    p = guard("replay", str(card / "a-clean.tlog"), str(card / "2026-11-29"), str(card), "--jobs", "1", cwd=tmp_path)
+    names = [line.split(":")[0] for line in firsts(p.stdout)[:-1]]
+    assert names[0] == str(card / "a-clean.tlog") and len(names) == len(set(names))
+    assert firsts(p.stdout)[-1].startswith(f"{len(names) + 1} logs: ")     # and the unreadable .bin
+
+
+def test_a_folder_that_cannot_be_read_is_said_and_the_rest_replayed(card, monkeypatch, capsys):
+    """A sub-folder the user may not read (os.walk would pass over it without a word): named among the
+    logs, and said as one that could not be read. (The suite may run as root, whom no permission
+    stops: the refusal is the operating system's answer, put in its place.)"""
+    locked = card / "locked"
+    locked.mkdir(exist_ok=True)
+    real_scandir, real_listdir = os.scandir, os.listdir
+
+    def refuse(path="."):
+        raise PermissionError(13, "Permission denied", str(path))
+
+    monkeypatch.setattr(os, "scandir", lambda path=".": refuse(path) if Path(path) == locked else real_scandir(path))
+    monkeypatch.setattr(os, "listdir", lambda path=".": refuse(path) if Path(path) == locked else real_listdir(path))
+    logs = find_logs([str(card)])
+    assert str(locked) in logs
+    assert replay_logs([str(card / "a-clean.tlog"), str(locked)], Config(), None, None, 1) == 1
+    out, err = capsys.readouterr()
+    assert err.strip() == f"guard: error: {locked}: cannot read the folder: Permission denied"
+    assert out.splitlines()[-1] == "2 logs: 0 alarm(s) in 0 of them, 1 without; 1 could not be read (said above)"
