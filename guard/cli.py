@@ -131,7 +131,11 @@ def _tune(args) -> int:
     from guard.config import load
     from guard.runtime.tune import default_jobs, tune, write_profile
     from guard.sources import find_logs
+    from guard.runtime.replay_command import unreadable_folder
     logs = [log for given in args.logs for log in (find_logs([given]) if Path(given).is_dir() else [given])]
+    for log in logs:
+        if error := unreadable_folder(log):
+            raise GuardError(error)
     profile, cfg = tune(logs, load(args.config), jobs=args.jobs or default_jobs())
     write_profile(profile, args.out, logs, cfg)
     changed = ", ".join(f"{k} = {v:g}" for table in profile.values() for k, v in table.items()) or "nothing"

@@ -101,30 +101,47 @@ def _each(job: tuple) -> tuple[list[str] | None, str | None, int]:
 
 
 def replay_logs(paths: list[str], cfg: Config, imu: int | None, gnss: int | None, jobs: int) -> int:
-    """Several logs, each summary printed in the order given; 1 if any could not be read."""
-    alarms = alarmed = failed = 0
+    """Several logs, each summary printed in the order given; 1 if any could not be read. Where a
+    process of the pool dies (out of memory, a bus error reading a failing card), the logs not yet
+    said are replayed again each in a process of its own, so that the one that kills it is named
+    and the rest go on."""
+    tally = {"alarms": 0, "alarmed": 0, "failed": 0}
+
+    def say(lines: list[str] | None, error: str | None, n: int) -> None:
+        if error is not None:
+            tally["failed"] += 1
+            sys.stdout.flush()
+            print(f"guard: error: {error}", file=sys.stderr, flush=True)
+            return
+        tally["alarms"] += n
+        tally["alarmed"] += n > 0
+        print("\n".join(lines), flush=True)
+
     work = [(p, cfg, imu, gnss) for p in paths]
-    jobs = min(jobs, len(paths))
-    done = 0
+    jobs, done = min(jobs, len(paths)), 0
     with ProcessPoolExecutor(jobs) if jobs > 1 else nullcontext() as pool:
         try:
-            for lines, error, n in (pool.map(_each, work) if pool else map(_each, work)):
+            for result in (pool.map(_each, work) if pool else map(_each, work)):
+                say(*result)
                 done += 1
-                if error is not None:
-                    failed += 1
-                    sys.stdout.flush()
-                    print(f"guard: error: {error}", file=sys.stderr, flush=True)
-                    continue
-                alarms, alarmed = alarms + n, alarmed + (n > 0)
-                print("\n".join(lines), flush=True)
-        except BrokenProcessPool:   # a process killed (out of memory, a bus error reading a failing card)
-            failed += len(paths) - done
-            print(f"guard: error: a replay process died: {paths[done]} and the {len(paths) - done - 1} logs after "
-                  "it were not replayed", file=sys.stderr, flush=True)
-    read = len(paths) - failed
-    print(f"{len(paths)} logs: {alarms} alarm(s) in {alarmed} of them, {read - alarmed} without"
+        except BrokenProcessPool:
+            for job in work[done:]:
+                say(*_alone(job))
+    failed = tally["failed"]
+    print(f"{len(paths)} logs: {tally['alarms']} alarm(s) in {tally['alarmed']} of them, "
+          f"{len(paths) - failed - tally['alarmed']} without"
           + (f"; {failed} could not be read (said above)" if failed else ""))
     return 1 if failed else 0
+
+
+def _alone(job: tuple) -> tuple[list[str] | None, str | None, int]:
+    """One log replayed in a process of its own: `_each`'s answer, or that the process died."""
+    with ProcessPoolExecutor(1) as one:
+        try:
+            return one.submit(_each, job).result()
+        except BrokenProcessPool:
+            return None, (f"{job[0]}: the process replaying it died (killed: out of memory, or a read error "
+                          "the system could not return)"), 0
 
 
 def summary(path: str, report: dict, timeline: Timeline, iron_line: str | None) -> list[str]:

@@ -7,6 +7,8 @@ from __future__ import annotations
 import dataclasses
 import random
 import struct
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -185,3 +187,40 @@ def test_a_log_message_with_no_text_is_a_message(logs, tmp_path):
     copy.write_bytes(data[:at] + empty + data[at:])
     assert walk(copy.read_bytes()).spans == []
     assert count(copy)[:2] == count(logs["sim"])[:2]
+
+
+def test_an_id_taken_by_a_corrupt_add_leaves_the_topic_its_own(logs, tmp_path):
+    """A corrupt 'A' that names the id of the IMU's or the GNSS's topic, before that topic's own 'A'
+    (pyulog takes the later one): the topic's data messages, of its own size, are still framed, and
+    every sample read, as pyulog alone reads them."""
+    for origin, path in logs.items():
+        data = path.read_bytes()
+        msgs, ids = messages(data)
+        clean = count(path)[:2]
+        adds = [m for m in msgs if data[m[0] + 2] == ord("A")]
+        for topic in ("sensor_combined", *sorted(GNSS & set(ids))):
+            own = next(m for m in adds if data[m[0] + 6:m[0] + 3 + m[1]].decode() == topic)
+            before = [m for m in adds if m[0] < own[0]]
+            if not before:
+                continue
+            bad = bytearray(data)
+            struct.pack_into("<H", bad, before[-1][0] + 4, ids[topic])
+            copy = tmp_path / f"{origin}-{topic}-taken.ulg"
+            copy.write_bytes(bytes(bad))
+            assert count(copy)[:2] == clean, (origin, topic)
+
+
+def test_a_log_cut_in_its_definitions_with_a_short_format_ends(logs, tmp_path):
+    """A log cut inside its definitions, one format's size short: the definitions' own read stops (as
+    the whole read does) and the replay ends with a line saying there is no fix, not a hang."""
+    data = logs.get("real", logs["sim"]).read_bytes()
+    formats = [m for m in messages(data)[0] if data[m[0] + 2] == ord("F")]
+    pos, size, _ = formats[len(formats) * 3 // 4]
+    cut = bytearray(data[:formats[-1][0]])
+    struct.pack_into("<H", cut, pos, size - 20)
+    copy = tmp_path / "cut-definitions.ulg"
+    copy.write_bytes(bytes(cut))
+    p = subprocess.run([sys.executable, "-m", "guard", "replay", str(copy)], capture_output=True, text=True,
+                       timeout=120)
+    assert p.returncode == 1 and "Traceback" not in p.stderr, p.stderr
+    assert p.stderr.strip().splitlines()[-1].startswith(f"guard: error: {copy}: no GNSS sample"), p.stderr

@@ -6,16 +6,20 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import multiprocessing
 import os
 import random
 import shutil
+import signal
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
+from guard.cli import main
 from guard.config import Config
+from guard.runtime import replay_command
 from guard.runtime.replay_command import replay_logs
 from guard.sources import find_logs
 from guard_sim import scenario
@@ -128,9 +132,37 @@ def test_a_folder_that_cannot_be_read_is_said_and_the_rest_replayed(card, monkey
 
     monkeypatch.setattr(os, "scandir", lambda path=".": refuse(path) if Path(path) == locked else real_scandir(path))
     monkeypatch.setattr(os, "listdir", lambda path=".": refuse(path) if Path(path) == locked else real_listdir(path))
+    assert main(["tune", str(card), "--out", str(card / "never.toml")]) == 1     # tune takes folders alike
+    assert capsys.readouterr().err.strip() == f"guard: error: {locked}: cannot read the folder: Permission denied"
     logs = find_logs([str(card)])
     assert str(locked) in logs
     assert replay_logs([str(card / "a-clean.tlog"), str(locked)], Config(), None, None, 1) == 1
     out, err = capsys.readouterr()
     assert err.strip() == f"guard: error: {locked}: cannot read the folder: Permission denied"
     assert out.splitlines()[-1] == "2 logs: 0 alarm(s) in 0 of them, 1 without; 1 could not be read (said above)"
+
+
+def test_a_replay_process_that_dies_is_said_and_the_rest_replayed(card, tmp_path, monkeypatch, capsys):
+    """A process of the pool killed while it replays one log (the system's out-of-memory killer, a
+    bus error reading a failing card; here a SIGKILL the log's replay sends itself): that log is named,
+    and the logs after it are replayed still."""
+    logs = []
+    for name in ("a", "die", "c", "d"):
+        logs.append(str(tmp_path / f"{name}.tlog"))
+        shutil.copy(card / "a-clean.tlog", logs[-1])
+    real = replay_command.analyse
+
+    def analyse(path, *args, **kwargs):
+        if Path(path).name == "die.tlog" and multiprocessing.parent_process() is not None:
+            os.kill(os.getpid(), signal.SIGKILL)
+        return real(path, *args, **kwargs)
+
+    if multiprocessing.get_start_method() != "fork":
+        pytest.skip("the pool's processes are not forked here: they would not carry the dying replay")
+    monkeypatch.setattr(replay_command, "analyse", analyse)    # the pool's processes are forked with it
+    assert replay_logs(logs, Config(), None, None, 2) == 1
+    out, err = capsys.readouterr()
+    assert err.strip() == f"guard: error: {logs[1]}: the process replaying it died (killed: out of memory, or a " \
+                          "read error the system could not return)"
+    assert [line.split(":")[0] for line in firsts(out)[:-1]] == [logs[0], logs[2], logs[3]]
+    assert firsts(out)[-1] == "4 logs: 0 alarm(s) in 0 of them, 3 without; 1 could not be read (said above)"

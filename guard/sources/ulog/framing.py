@@ -105,7 +105,9 @@ class _Chain:
         self.buf, self.n, self.formats = buf, len(buf), formats
         self.topics: set[int] = set()
         self.sizes: dict[int, int] = {}                     # a topic's data messages' size
-        self.ranges: dict[int, tuple[int, int]] = {}        # ... where its format allows a range (padding)
+        self.ranges: dict[int, list[tuple[int, int]]] = {}  # ... where it may have several: the sizes its
+        # format allows (padding), or those of each format an id was added with (a corrupt 'A' may take
+        # another topic's id before that topic's own 'A'; pyulog then takes the later one)
 
     def head(self, p: int, strict: bool = True) -> tuple[int, int] | None:
         """(size, type) of a message that may start at p: None if it cannot (a type ULog does not
@@ -139,8 +141,7 @@ class _Chain:
             topic = _U16.unpack_from(self.buf, p + 3)[0]
             if self.sizes.get(topic, size) != size:
                 return None
-            lo, hi = self.ranges.get(topic, (size, size))
-            if not lo <= size <= hi:
+            if topic in self.ranges and not any(lo <= size <= hi for lo, hi in self.ranges[topic]):
                 return None
         return end
 
@@ -161,12 +162,15 @@ class _Chain:
         if kind == _A and end - p >= 6:
             topic = _U16.unpack_from(self.buf, p + 4)[0]
             self.topics.add(topic)
-            if topic not in self.sizes and topic not in self.ranges and (size := self._size(p, end)):
-                lo, hi = size
-                if lo == hi:
-                    self.sizes[topic] = lo
-                else:
-                    self.ranges[topic] = size
+            size = self._size(p, end)
+            known = [(self.sizes[topic],) * 2] if topic in self.sizes else self.ranges.get(topic, [])
+            if size is None or size in known:
+                return
+            if not known and size[0] == size[1]:
+                self.sizes[topic] = size[0]
+            else:           # a range, or an id added again with another format: any of them
+                self.sizes.pop(topic, None)
+                self.ranges[topic] = [*known, size]
         elif kind == _D:
             topic = _U16.unpack_from(self.buf, p + 3)[0]
             if topic in self.topics and topic not in self.sizes and topic not in self.ranges and self.holds(p):

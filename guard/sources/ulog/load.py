@@ -76,7 +76,7 @@ def _mended(f, path: str) -> tuple[io.BytesIO | None, Walk]:
     except OSError as e:
         raise SourceError(f"{path}: cannot read: {e.strerror}") from None
     try:
-        formats = ULog(io.BytesIO(data), parse_header_only=True).message_formats
+        formats = ULog(_TrackedFile(io.BytesIO(data)), parse_header_only=True).message_formats
     except Exception:       # noqa: BLE001 - definitions pyulog cannot read: the walk learns the sizes
         formats = None
     mended, walk = mend(data, formats)
