@@ -56,28 +56,15 @@ from guard.runtime.agreement import LiveWander                                  
 from guard.runtime.position_wander import LivePositionWander, PositionWander, beyond_tune   # noqa: E402
 from guard.runtime.deviation import SAY_DEG, Headings, LiveCheck, compass_fits, said   # noqa: E402
 from guard.runtime.replay import replay              # noqa: E402
+from guard.sources import find_logs                  # noqa: E402
 import pymap3d                                       # noqa: E402
 from tools.autopilot_view import SAW_TOP, read_log, report_time_as_logged, saw_too, view   # noqa: E402
 from tools.autopilot_view import WINDOW_S as AUTOPILOT_WINDOW_S                 # noqa: E402
 
-SUFFIXES = {".tlog", ".bin", ".ulg"}
-
-
 def logs_in(paths: list[str]) -> list[str]:
-    """The logs (by their suffix) in each folder and the folders within it, and each single file; a
-    GuardError names one missing, or a folder that holds no log."""
-    logs: list[str] = []
-    for f in map(Path, paths):
-        if f.is_dir():
-            found = sorted(str(p) for p in f.rglob("*") if p.suffix.lower() in SUFFIXES and p.is_file())
-            if not found:
-                raise GuardError(f"{f}: no log in it or its folders (.tlog, .bin or .ulg)")
-            logs += found
-        elif f.exists():
-            logs.append(str(f))
-        else:
-            raise GuardError(f"{f}: no such file or folder")
-    return logs
+    """The logs in each folder and the folders within it, and each single file, as `guard replay`
+    finds them (guard.sources.find_logs); a GuardError names one missing, or a folder that holds no log."""
+    return find_logs(paths)
 
 
 def each_log(doc: str, measure, show, argv=None) -> list[dict] | int:
