@@ -1,9 +1,9 @@
 """pyulog's reading of a ULog file: the topics guard uses, and where pyulog stopped short.
 
-The file's framing is walked first (guard.sources.ulog.framing): where corrupt bytes broke it,
-pyulog reads the file without the spans that could not be framed, so that it does not lose the
-messages after them. pyulog reads the whole file at once and prints what it finds wrong on stdout: that is caught and
-logged (the first lines as warnings, the rest counted). It stops silently at a cut message; the
+The file is read once, into memory, and its framing walked (guard.sources.ulog.framing): where
+corrupt bytes broke it, pyulog reads the file without the spans that could not be framed, so that
+it does not lose the messages after them. pyulog reads the whole file at once and prints what it
+finds wrong on stdout: that is caught and logged (the first lines as warnings, the rest counted). It stops silently at a cut message; the
 file it reads notices (its last read came up short) and says where.
 """
 
@@ -66,13 +66,13 @@ class _TrackedFile:
         """pyulog closes its file when done; the reader closes its own."""
 
 
-def _mended(f, path: str) -> tuple[io.BytesIO | None, Walk]:
-    """The file without the spans its framing's walk skipped (None where it skipped none), and the walk.
-    The file is read whole (a read error is a SourceError, where a mapped file's would kill the
-    process); its definitions' formats, as pyulog reads them, give the walk its topics' sizes."""
+def _mended(f, path: str) -> tuple[io.BytesIO, bool, Walk]:
+    """The file's bytes for pyulog, without the spans its framing's walk skipped; whether it skipped
+    any; and the walk. The file is read whole, once (a read error is a SourceError, where a mapped
+    file's would kill the process); its definitions' formats, as pyulog reads them, give the walk its
+    topics' sizes."""
     try:
         data = f.read()
-        f.seek(0)
     except OSError as e:
         raise SourceError(f"{path}: cannot read: {e.strerror}") from None
     try:
@@ -80,7 +80,7 @@ def _mended(f, path: str) -> tuple[io.BytesIO | None, Walk]:
     except Exception:       # noqa: BLE001 - definitions pyulog cannot read: the walk learns the sizes
         formats = None
     mended, walk = mend(data, formats)
-    return (None if mended is None else io.BytesIO(mended)), walk
+    return io.BytesIO(data if mended is None else mended), mended is not None, walk
 
 
 def load(path: str, topics: list[str] | None = None) -> tuple[ULog, int | None, Walk]:
@@ -91,8 +91,8 @@ def load(path: str, topics: list[str] | None = None) -> tuple[ULog, int | None, 
     except OSError as e:
         raise SourceError(f"{path}: cannot open: {e.strerror}") from None
     with f, printed() as said:
-        mended, walk = _mended(f, path)
-        tracked = _TrackedFile(f if mended is None else mended)
+        data, mended, walk = _mended(f, path)
+        tracked = _TrackedFile(data)
         try:
             ulog = ULog(tracked, message_name_filter_list=TOPICS if topics is None else topics)
         except ULogException as e:
@@ -105,5 +105,5 @@ def load(path: str, topics: list[str] | None = None) -> tuple[ULog, int | None, 
         log.warning("%s: pyulog: %s", path, line)
     if said.lines > len(said.first):
         log.warning("%s: pyulog: %d more lines like these", path, said.lines - len(said.first))
-    cut_at = tracked.cut_at if tracked.cut_at is None or mended is None else walk.in_file(tracked.cut_at)
+    cut_at = walk.in_file(tracked.cut_at) if tracked.cut_at is not None and mended else tracked.cut_at
     return ulog, cut_at, walk
